@@ -1,0 +1,1 @@
+"""sceneforge's Click commands: parse options, build a config, call one library function."""

@@ -1,0 +1,27 @@
+"""Expected failures. The CLI prints these as one red line; anything else is a bug."""
+
+from __future__ import annotations
+
+
+class SceneforgeError(Exception):
+    """Base class of every error a user can cause (bad input, missing dependency, ...)."""
+
+
+class HouseError(SceneforgeError):
+    """A house cannot be loaded. Names the house, the file and the problem."""
+
+    def __init__(self, house: str, file: str | None, problem: str):
+        self.house, self.file, self.problem = str(house), file and str(file), problem
+        where = f"house {self.house}" + (f": {self.file}" if self.file else "")
+        super().__init__(f"{where}: {problem}")
+
+
+class UnknownFormatError(SceneforgeError):
+    """A path is not a house in any supported format."""
+
+
+class MissingDependencyError(SceneforgeError):
+    """An optional dependency is needed for the feature that was used."""
+
+    def __init__(self, package: str, feature: str, install: str):
+        super().__init__(f"{feature} needs {package}: install it with `{install}`")

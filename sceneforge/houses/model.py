@@ -1,0 +1,182 @@
+"""The in-memory house model every loader produces and everything downstream consumes.
+
+A :class:`House` is a list of :class:`Instance` placed in world space (metres, +Y up),
+plus its :class:`Room` and :class:`Level` records. It knows nothing about file formats,
+renderers or ray tracers. Instances are built through :func:`make_instance`, the one
+place that checks geometry and decides the envelope flag.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..conventions import NYU40_NAMES, is_envelope, tol
+from ..errors import HouseError
+
+if TYPE_CHECKING:
+    import PIL.Image
+
+
+@dataclass
+class Material:
+    """How an instance looks when rendered.
+
+    base_color : (4,) float  linear RGBA in [0, 1]
+    texture    : path of an image file, a PIL image (textures embedded in GLB), or None;
+                 sampled with the instance's ``uv``
+    """
+
+    base_color: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
+    texture: "Path | PIL.Image.Image | None" = None
+
+
+@dataclass
+class Instance:
+    """One object or envelope part of a house.
+
+    vertices : (n, 3) float64  world coordinates, metres, +Y up
+    faces    : (m, 3) int64    counter-clockwise seen from outside (normals out)
+    uv       : (n, 2) float32  texture coordinates, or None
+    category : NYU40 id (0 = void)
+    label    : the source's own category name (e.g. SUNCG fine class), kept for rules
+               that NYU40 cannot express (fireplace, chandelier, ...)
+    envelope : part of the room envelope (wall, floor, ceiling, door, window, ...)
+    """
+
+    id: int
+    name: str
+    category: int
+    label: str
+    room_id: str | None
+    vertices: np.ndarray
+    faces: np.ndarray
+    envelope: bool
+    material: Material = field(default_factory=Material)
+    uv: np.ndarray | None = None
+
+    @property
+    def category_name(self) -> str:
+        return NYU40_NAMES[self.category]
+
+
+@dataclass
+class Room:
+    """A room: id, type name (e.g. ``bedroom``) and the level it is on."""
+
+    id: str
+    type: str
+    level: int
+
+
+@dataclass
+class Level:
+    """A storey and the height of its floor (metres, world Y)."""
+
+    id: int
+    floor_y: float
+
+
+@dataclass
+class House:
+    """A house: instances, rooms and levels, plus where it came from.
+
+    ``warnings`` lists the problems a loader repaired or tolerated (dropped degenerate
+    faces, unknown categories mapped to void, ...), for ``sceneforge houses inspect``.
+    """
+
+    id: str
+    instances: list[Instance]
+    rooms: list[Room] = field(default_factory=list)
+    levels: list[Level] = field(default_factory=lambda: [Level(0, 0.0)])
+    source_format: str = "sceneforge"
+    source_path: str | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def triangle_count(self) -> int:
+        return int(sum(len(i.faces) for i in self.instances))
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 axis-aligned bounds of all instances."""
+        v = np.concatenate([i.vertices for i in self.instances])
+        return np.stack([v.min(0), v.max(0)])
+
+    def room(self, room_id: str) -> Room | None:
+        return next((r for r in self.rooms if r.id == room_id), None)
+
+    def check_not_empty(self) -> "House":
+        """Raise :class:`HouseError` when no instance survived loading."""
+        if not self.instances:
+            raise HouseError(self.id, self.source_path, "house is empty (no instance with geometry)")
+        return self
+
+
+def make_instance(
+    house: House,
+    *,
+    name: str,
+    category: int,
+    label: str,
+    room_id: str | None,
+    vertices,
+    faces,
+    file: str | Path | None = None,
+    material: Material | None = None,
+    uv=None,
+) -> Instance | None:
+    """Check one mesh and add it to ``house`` as a new instance.
+
+    Raises :class:`HouseError` for non-finite vertices or faces indexing past the vertex
+    array. Degenerate faces (repeated index or zero area) are dropped and counted in
+    ``house.warnings``. Returns None (and adds nothing) when no face is left.
+    """
+    where = file or house.source_path
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not np.isfinite(v).all():
+        bad = int((~np.isfinite(v).all(axis=1)).sum())
+        raise HouseError(house.id, where, f"instance {name!r}: {bad} vertices are NaN or infinite")
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        raise HouseError(
+            house.id, where,
+            f"instance {name!r}: face index {int(f.max() if f.max() >= len(v) else f.min())} "
+            f"is outside the {len(v)} vertices",
+        )
+    if not 0 <= category < len(NYU40_NAMES):
+        raise HouseError(house.id, where, f"instance {name!r}: NYU40 id {category} is not in 0..40")
+    if len(f):
+        area2 = np.linalg.norm(
+            np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1
+        )
+        keep = (area2 > 2 * tol.degenerate_area) & (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (
+            f[:, 0] != f[:, 2]
+        )
+        dropped = int((~keep).sum())
+        if dropped:
+            house.warnings.append(f"instance {name!r}: dropped {dropped} degenerate faces")
+            f = f[keep]
+    if not len(f):
+        house.warnings.append(f"instance {name!r}: no faces, skipped")
+        return None
+    if uv is not None:
+        uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
+        if len(uv) != len(v):
+            uv = None
+    inst = Instance(
+        id=len(house.instances),
+        name=name,
+        category=int(category),
+        label=label,
+        room_id=room_id,
+        vertices=v,
+        faces=f,
+        envelope=is_envelope(int(category), label),
+        material=material or Material(),
+        uv=uv,
+    )
+    house.instances.append(inst)
+    return inst
