@@ -16,8 +16,8 @@ from ..errors import HouseError, SceneforgeError, UnknownFormatError
 from .model import House, Instance, Level, Material, Room, make_instance
 
 __all__ = [
-    "FORMATS", "House", "HouseSource", "Instance", "Level", "LoadOptions", "Material", "Room",
-    "discover", "load", "make_instance",
+    "BUNDLED_TOY", "FORMATS", "House", "HouseSource", "Instance", "Level", "LoadOptions", "Material", "Room",
+    "discover", "iter_houses", "load", "make_instance",
 ]
 
 #: Names accepted by ``--format``.
@@ -95,13 +95,25 @@ def _source(path: Path, fmt: str) -> HouseSource:
     return HouseSource(path.stem, fmt, path)
 
 
+#: Stands for the toy houses bundled with the package wherever a houses path is taken.
+BUNDLED_TOY = "bundled:toy"
+
+
+def bundled_toy_dir() -> Path:
+    """Folder of the toy houses shipped with the package."""
+    from .categories import data_file
+
+    return data_file("toy_houses")
+
+
 def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
     """All houses under ``path``, in a stable (sorted) order.
 
-    Raises :class:`UnknownFormatError` when ``path`` holds nothing readable and
+    ``path`` may be :data:`BUNDLED_TOY` for the bundled toy houses. Raises
+    :class:`UnknownFormatError` when ``path`` holds nothing readable and
     :class:`SceneforgeError` when it does not exist.
     """
-    path = Path(path)
+    path = bundled_toy_dir() if str(path) == BUNDLED_TOY else Path(path)
     if not path.exists():
         raise SceneforgeError(f"{path}: no such file or folder")
     if fmt is not None and fmt not in FORMATS:
@@ -185,3 +197,20 @@ def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -
     except (OSError, ValueError, KeyError, IndexError, TypeError) as e:
         raise HouseError(source.id, source.path, f"{type(e).__name__}: {e}") from e
     raise UnknownFormatError(f"unknown format {source.format!r}")
+
+
+def iter_houses(path: str | Path, options: LoadOptions | None = None):
+    """Yield ``(source, house, error)`` for every house under ``path``.
+
+    Exactly one of ``house`` and ``error`` is None: a house that fails to load is reported
+    with its :class:`HouseError` and the others still load. Unexpected exceptions are
+    reported too, wrapped with the house and file they came from.
+    """
+    options = options or LoadOptions()
+    for source in discover(path, options.format):
+        try:
+            yield source, load(source, options), None
+        except SceneforgeError as e:
+            yield source, None, e
+        except Exception as e:  # a bug or a library choking on bad bytes: still only this house
+            yield source, None, HouseError(source.id, source.path, f"{type(e).__name__}: {e}")

@@ -1,0 +1,39 @@
+# sceneforge — every target creates the virtual environment first when it is missing.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+DEMO   ?= demo
+
+.DEFAULT_GOAL := help
+.PHONY: help install demo test bench lint clean
+
+help:  ## list the targets
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml scripts/system-deps.sh
+	bash scripts/system-deps.sh
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
+	# torch first and pinned: its CPU build; a plain `torch` would pull GBs of CUDA packages
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e ".[all]"
+	touch $(STAMP)
+
+install: $(STAMP)  ## create .venv and install sceneforge with every extra
+
+demo: $(STAMP)  ## the main job on the bundled toy houses (writes demo/)
+	$(VENV)/bin/sceneforge houses inspect bundled:toy --preview $(DEMO)/previews
+
+test: $(STAMP)  ## run the test suite (no GPU, no network)
+	$(PY) -m pytest -q -n 2
+
+bench: $(STAMP)  ## run the benchmarks and print their figures
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+lint: $(STAMP)  ## static checks
+	$(PY) -m pip install --quiet ruff
+	$(VENV)/bin/ruff check sceneforge cli schemas tests benchmarks
+
+clean:  ## remove the virtual environment and demo output
+	rm -rf $(VENV) $(DEMO)

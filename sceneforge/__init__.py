@@ -1,0 +1,13 @@
+"""sceneforge: 3D house models in, multi-layer depth training data out.
+
+Implements "3D Scene Reconstruction with Multi-layer Depth and Epipolar Transformers"
+(Shin, Ren, Sudderth, Fowlkes, ICCV 2019). Conventions are stated once, in
+:mod:`sceneforge.conventions`.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("sceneforge")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"

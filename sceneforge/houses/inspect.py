@@ -1,0 +1,117 @@
+"""What ``sceneforge houses inspect`` reports: per-house summaries and top-down previews."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..conventions import NYU40_IDS, NYU40_NAMES
+from .model import House
+
+
+@dataclass(frozen=True)
+class HouseSummary:
+    """Counts and checks of one loaded house.
+
+    categories : NYU40 name → (instances, triangles), most instances first
+    bounds     : (2, 3) float64 min / max corner, metres
+    """
+
+    id: str
+    source_format: str
+    source_path: str | None
+    instances: int
+    triangles: int
+    rooms: int
+    levels: int
+    categories: tuple[tuple[str, int, int], ...]
+    bounds: np.ndarray
+    problems: tuple[str, ...]
+
+
+def summarize(house: House) -> HouseSummary:
+    """Summary and problems of ``house`` (loader warnings plus structural checks)."""
+    inst = Counter(i.category for i in house.instances)
+    tris = Counter()
+    for i in house.instances:
+        tris[i.category] += len(i.faces)
+    cats = tuple(
+        (NYU40_NAMES[c], n, tris[c]) for c, n in sorted(inst.items(), key=lambda kv: (-kv[1], kv[0]))
+    )
+    problems = list(house.warnings)
+    for needed in ("floor", "wall"):
+        if NYU40_IDS[needed] not in inst:
+            problems.append(f"no {needed} instance")
+    if house.rooms:
+        room_ids = {r.id for r in house.rooms}
+        homeless = sum(1 for i in house.instances if i.room_id not in room_ids)
+        if homeless:
+            problems.append(f"{homeless} instances belong to no room")
+    return HouseSummary(
+        id=house.id,
+        source_format=house.source_format,
+        source_path=house.source_path,
+        instances=len(house.instances),
+        triangles=house.triangle_count,
+        rooms=len(house.rooms),
+        levels=len(house.levels),
+        categories=cats,
+        bounds=house.bounds(),
+        problems=tuple(problems),
+    )
+
+
+def category_colors() -> np.ndarray:
+    """(41, 3) uint8 a fixed colour per NYU40 class (void black), for every preview."""
+    rng = np.random.default_rng(40)
+    colors = rng.integers(40, 230, size=(len(NYU40_NAMES), 3)).astype(np.uint8)
+    colors[0] = 0
+    colors[NYU40_IDS["wall"]] = (70, 70, 70)
+    colors[NYU40_IDS["floor"]] = (215, 205, 185)
+    return colors
+
+
+def write_preview(house: House, path: str | Path, size: int = 768) -> Path:
+    """Write a top-down PNG of ``house`` (ceilings left out), coloured by NYU40 class.
+
+    Triangles are painted lowest first, so what is seen from above ends on top; a legend
+    names the classes present.
+    """
+    from PIL import Image, ImageDraw
+
+    colors = category_colors()
+    parts = [i for i in house.instances if i.category != NYU40_IDS["ceiling"]] or house.instances
+    lo, hi = house.bounds()
+    span = max(hi[0] - lo[0], hi[2] - lo[2], 1e-6)
+    margin = 16
+    scale = (size - 2 * margin) / span
+    tri_xy, tri_top, tri_cat = [], [], []
+    for inst in parts:
+        v = inst.vertices[inst.faces]  # (m, 3, 3)
+        tri_xy.append(np.stack([(v[..., 0] - lo[0]) * scale + margin, (v[..., 2] - lo[2]) * scale + margin], -1))
+        tri_top.append(v[..., 1].max(1))
+        tri_cat.append(np.full(len(v), inst.category))
+    xy = np.concatenate(tri_xy)
+    order = np.argsort(np.concatenate(tri_top), kind="stable")
+    cats = np.concatenate(tri_cat)[order]
+    xy = xy[order]
+    width = int(np.ceil((hi[0] - lo[0]) * scale)) + 2 * margin
+    height = int(np.ceil((hi[2] - lo[2]) * scale)) + 2 * margin
+    present = sorted(set(cats.tolist()))
+    legend_h = 18 * ((len(present) + 3) // 4) + 8
+    img = Image.new("RGB", (max(width, 4 * 150), height + legend_h), (255, 255, 255))
+    draw = ImageDraw.Draw(img)
+    for tri, c in zip(xy, cats):
+        draw.polygon([tuple(p) for p in tri], fill=tuple(int(x) for x in colors[c]))
+    for k, c in enumerate(present):
+        x0, y0 = 8 + 150 * (k % 4), height + 4 + 18 * (k // 4)
+        draw.rectangle([x0, y0, x0 + 12, y0 + 12], fill=tuple(int(x) for x in colors[c]), outline=(0, 0, 0))
+        draw.text((x0 + 18, y0), NYU40_NAMES[c], fill=(0, 0, 0))
+    draw.text((8, 2), f"{house.id} (top view, +x right, +z down, 1 m = {scale:.0f} px)", fill=(0, 0, 0))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img.save(path)
+    return path

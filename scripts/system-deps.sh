@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Check the system libraries that sceneforge's Python packages load at run time, install the
+# missing ones when we are root on a Debian/Ubuntu machine, and name them otherwise.
+#   libEGL + Mesa's EGL driver  pyrender's offscreen rendering (GPU driver or Mesa software)
+#   libGL                       PyOpenGL
+#   libusb-1.0                  Open3D (its Python module links it even without devices)
+#   libgomp                     Open3D and embreex (OpenMP)
+set -euo pipefail
+declare -A LIBS=(
+  [libEGL.so.1]=libegl1
+  [libEGL_mesa.so.0]=libegl-mesa0
+  [libGL.so.1]=libgl1
+  [libusb-1.0.so.0]=libusb-1.0-0
+  [libgomp.so.1]=libgomp1
+)
+missing=()
+for lib in "${!LIBS[@]}"; do
+  ldconfig -p 2>/dev/null | grep -q "$lib" || missing+=("${LIBS[$lib]}")
+done
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "system libraries: all present"
+  exit 0
+fi
+mapfile -t missing < <(printf '%s\n' "${missing[@]}" | sort -u)
+if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  echo "system libraries: installing ${missing[*]}"
+  apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null
+else
+  echo "system libraries missing: ${missing[*]}" >&2
+  echo "install them as root, e.g.: sudo apt-get install ${missing[*]}" >&2
+  exit 1
+fi

@@ -1,0 +1,51 @@
+"""Shared test helpers: tiny hand-made houses with known geometry."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from sceneforge.houses import House, Room, make_instance
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+BREAKFAST_ROOM = SHARED / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
+
+
+def box_instance(house: House, name: str, category: int, extents, center, room_id="r0", label=None):
+    """Add an axis-aligned closed box (extents (3,), centre (3,), metres) to ``house``."""
+    b = trimesh.creation.box(extents=extents)
+    b.apply_translation(center)
+    return make_instance(house, name=name, category=category, label=label or name, room_id=room_id,
+                         vertices=b.vertices, faces=b.faces)
+
+
+@pytest.fixture
+def small_house() -> House:
+    """A 4 × 3 × 4 m room (floor, ceiling, four walls) with a table, a chair and a cup."""
+    h = House(id="small", instances=[], rooms=[Room("r0", "kitchen", 0)])
+    box_instance(h, "floor", 2, (4, 0.1, 4), (0, -0.05, 0))
+    box_instance(h, "ceiling", 22, (4, 0.1, 4), (0, 3.05, 0))
+    for i, (ext, c) in enumerate([((0.1, 3, 4), (-2.05, 1.5, 0)), ((0.1, 3, 4), (2.05, 1.5, 0)),
+                                  ((4, 3, 0.1), (0, 1.5, -2.05)), ((4, 3, 0.1), (0, 1.5, 2.05))]):
+        box_instance(h, f"wall{i}", 1, ext, c)
+    box_instance(h, "table", 7, (1.2, 0.05, 0.8), (0, 0.725, 0))
+    box_instance(h, "chair", 5, (0.45, 0.45, 0.45), (0, 0.225, 0.7))
+    box_instance(h, "cup", 40, (0.08, 0.1, 0.08), (0.2, 0.8, 0.1), label="cup")
+    return h
+
+
+def assert_same_geometry(a: House, b: House, atol=1e-6):
+    """Same instances (order, name-independent), categories, rooms and geometry."""
+    assert len(a.instances) == len(b.instances)
+    for ia, ib in zip(a.instances, b.instances):
+        assert ia.category == ib.category, (ia.name, ib.name)
+        assert ia.envelope == ib.envelope
+        assert ia.room_id == ib.room_id
+        ma = trimesh.Trimesh(ia.vertices, ia.faces, process=False)
+        mb = trimesh.Trimesh(ib.vertices, ib.faces, process=False)
+        np.testing.assert_allclose(ma.bounds, mb.bounds, atol=atol)
+        np.testing.assert_allclose(ma.area, mb.area, rtol=1e-6, atol=atol)
+        assert len(ia.faces) == len(ib.faces)

@@ -1,0 +1,46 @@
+"""The command line: help, one-line red errors, a broken house among good ones."""
+
+from __future__ import annotations
+
+from click.testing import CliRunner
+
+from sceneforge.cli.main import COMMANDS, cli
+from sceneforge.houses.native import write_house
+
+
+def run(*args):
+    return CliRunner().invoke(cli, list(map(str, args)))
+
+
+def test_help_lists_every_command():
+    res = run("--help")
+    assert res.exit_code == 0
+    for name in COMMANDS:
+        assert name in res.output
+
+
+def test_inspect_prints_table_and_writes_preview(small_house, tmp_path):
+    write_house(small_house, tmp_path / "houses" / "small")
+    res = run("houses", "inspect", tmp_path / "houses", "--preview", tmp_path / "png")
+    assert res.exit_code == 0, res.output
+    assert "small" in res.output and "chair" in res.output and "1 houses read, 0 failed" in res.output
+    assert (tmp_path / "png" / "small.png").stat().st_size > 1000
+
+
+def test_broken_house_is_one_line_and_others_complete(small_house, tmp_path):
+    for name in ("a", "b"):
+        small_house.id = name
+        write_house(small_house, tmp_path / name)
+    (tmp_path / "a" / "house.bin").unlink()
+    res = run("houses", "inspect", tmp_path)
+    assert res.exit_code == 1
+    failed = [line for line in res.output.splitlines() if line.startswith("failed:")]
+    assert len(failed) == 1 and "house a" in failed[0] and "cannot read buffer" in failed[0]
+    assert "1 houses read, 1 failed" in res.output
+    assert "Traceback" not in res.output
+
+
+def test_expected_error_is_one_red_line(tmp_path):
+    res = run("houses", "inspect", tmp_path / "missing")
+    assert res.exit_code == 1
+    assert res.output.strip().splitlines() == [f"error: {tmp_path / 'missing'}: no such file or folder"]

@@ -1,0 +1,46 @@
+"""The built wheel carries the CLI, the schemas and the bundled houses, and works outside the repo."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
+    subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(out), str(ROOT)],
+        check=True, capture_output=True,
+    )
+    return next(out.glob("sceneforge-*.whl"))
+
+
+def test_wheel_contents(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for needed in ("sceneforge/cli/main.py", "sceneforge/schemas/house.schema.json",
+                   "sceneforge/data/name_patterns.json"):
+        assert needed in names
+    assert any(n.startswith("sceneforge/data/toy_houses/") and n.endswith("house.json") for n in names)
+
+
+def test_installed_package_works_outside_the_repo(wheel, tmp_path):
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    code = (
+        "import sceneforge, sceneforge.schemas as s; from sceneforge.houses import discover, load, BUNDLED_TOY;"
+        "assert str(sceneforge.__file__).startswith(%r);" % str(site)
+        + "srcs = discover(BUNDLED_TOY); h = load(srcs[0]); s.load('house');"
+        "print(len(srcs), len(h.instances))"
+    )
+    res = subprocess.run([sys.executable, "-I", "-c", f"import sys; sys.path.insert(0, {str(site)!r}); {code}"],
+                         cwd=tmp_path, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    n_houses, n_instances = map(int, res.stdout.split())
+    assert n_houses == 3 and n_instances > 10
