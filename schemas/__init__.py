@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 from functools import lru_cache
-from importlib import resources
+from pathlib import Path
 
 from sceneforge.errors import SceneforgeError
 
@@ -19,7 +19,7 @@ def load(name: str) -> dict:
     """The parsed JSON Schema ``schemas/<name>.schema.json``."""
     if name not in NAMES:
         raise KeyError(f"no schema {name!r}; known: {', '.join(NAMES)}")
-    return json.loads((resources.files(__name__) / f"{name}.schema.json").read_text())
+    return json.loads((Path(__file__).parent / f"{name}.schema.json").read_text())
 
 
 def errors(doc, name: str) -> list[str]:

@@ -16,7 +16,6 @@ import json
 import re
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 
 from ..conventions import NYU40_NAMES, nyu40_id
@@ -26,7 +25,7 @@ from .model import House
 
 def data_file(name: str) -> Path:
     """Path of a data file shipped inside the package (``sceneforge/data``)."""
-    return Path(str(resources.files("sceneforge") / "data" / name))
+    return Path(__file__).resolve().parents[1] / "data" / name
 
 
 @dataclass(frozen=True)
