@@ -1,0 +1,381 @@
+"""3D-FRONT houses: one scene JSON plus 3D-FUTURE furniture models.
+
+A 3D-FRONT root, as released and as :func:`write_house` writes it::
+
+    <root>/3D-FRONT/<uid>.json                    one house
+    <root>/3D-FUTURE-model/<jid>/raw_model.obj    a furniture model (+ its .mtl, texture.png)
+    <root>/3D-FUTURE-model/model_info.json        [{model_id, category, super-category, ...}]
+    <root>/3D-FRONT-texture/<id>/texture.png      textures of the architecture meshes
+
+The scene JSON is read as the 3D-FRONT-ToolBox reads it (``scripts/scene.py``, ``utils.py``):
+
+- ``furniture[]``: ``uid``, ``jid`` (the 3D-FUTURE model), ``title``, ``category``, ``valid``;
+  entries with ``valid: false`` are unreleased models and are skipped;
+- ``mesh[]``: architecture inline, in world coordinates: ``uid``, ``type`` (Floor, WallInner,
+  Ceiling, Door, ...), flat ``xyz``, ``faces``, ``uv``, ``normal`` and a ``material`` uid;
+- ``material[]``: ``uid``, ``color`` (RGBA 0–255), ``texture`` (a URL whose last folder
+  names the texture in ``3D-FRONT-texture``);
+- ``scene.room[]``: ``type``, ``instanceid`` and ``children[]`` of
+  ``{ref, instanceid, pos, rot, scale}``. Each child places the furniture or mesh whose uid
+  is ``ref`` at ``R(rot) · (scale ⊙ v) + pos`` with ``rot`` a unit quaternion
+  **(x, y, z, w)**; a mirroring (negative) scale reverses the face winding. Mesh children
+  carry the identity in the released data.
+
+Units are metres and +Y is up, as in sceneforge. A furniture model whose ``raw_model.obj``
+is missing is skipped with a warning (3D-FRONT references models that were never
+released, so an error would reject most houses); a missing model folder is an error.
+
+Categories go through ``sceneforge/data/front3d_categories.json``: furniture tries its
+``category``, then its model's ``category`` and ``super-category`` in ``model_info.json``,
+then its ``title``; a mesh its ``type``. The first name found in the table (or that is an
+NYU40 class name) decides; the instance label is the first name given. Plants are dropped.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+from dataclasses import replace
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..conventions import NYU40_NAMES, is_dropped, nyu40_id
+from ..errors import HouseError, SceneforgeError
+from .categories import data_file, resolve
+from .model import House, Instance, Material, Room, make_instance
+from .suncg import ObjMesh, place, read_obj, save_texture, write_obj
+
+if TYPE_CHECKING:
+    from . import LoadOptions
+
+SCENE_DIR = "3D-FRONT"
+MODEL_DIR = "3D-FUTURE-model"
+TEXTURE_DIR = "3D-FRONT-texture"
+MODEL_INFO = "model_info.json"
+CATEGORY_FILE = "front3d_categories.json"
+
+
+def _key(name: str) -> str:
+    return " ".join(str(name).split()).lower()
+
+
+@lru_cache(maxsize=1)
+def category_table() -> dict[str, str]:
+    """Normalised 3D-FRONT name → NYU40 class name (or a dropped name: plant, person)."""
+    path = data_file(CATEGORY_FILE)
+    try:
+        raw = json.loads(path.read_text())["categories"]
+        table = {_key(k): str(v) for k, v in raw.items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise SceneforgeError(f"cannot read the 3D-FRONT category table {path}: {e}") from None
+    bad = sorted(v for v in set(table.values()) if nyu40_id(v) is None and not is_dropped(0, v))
+    if bad:
+        raise SceneforgeError(f"{path}: {', '.join(bad)} are not NYU40 class names")
+    return table
+
+
+def lookup(names) -> tuple[str, int | None, bool]:
+    """``(label, NYU40 id or None, dropped)`` for the candidate names of one piece, best first."""
+    names = [str(n).strip() for n in names if n and str(n).strip()]
+    label = names[0] if names else ""
+    table = category_table()
+    for name in names:
+        target = table.get(_key(name))
+        if target is None and nyu40_id(name) is not None:
+            target = name
+        if target is not None:
+            return label, nyu40_id(target), is_dropped(0, target) or is_dropped(0, label)
+    return label, None, is_dropped(0, label)
+
+
+def quaternion_matrix(q) -> np.ndarray:
+    """(3, 3) float64 rotation of the unit quaternion ``q = (x, y, z, w)`` (normalised here)."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _future_dir(path: Path, options: LoadOptions) -> Path:
+    if options.future_dir:
+        return Path(options.future_dir)
+    for cand in (path.parent.parent / MODEL_DIR, path.parent / MODEL_DIR):
+        if cand.is_dir():
+            return cand
+    return path.parent.parent / MODEL_DIR
+
+
+class _Reader:
+    """State of one scene being read: paths, tables, model cache, the house."""
+
+    def __init__(self, path: Path, options: LoadOptions):
+        self.path = path
+        self.strict = options.strict
+        self.future = _future_dir(path, options)
+        self.textures = path.parent.parent / TEXTURE_DIR
+        self.house = House(id=path.stem, instances=[], rooms=[], source_format="front3d",
+                           source_path=str(path))
+        self._models: dict[str, ObjMesh | None] = {}
+
+    def error(self, problem: str, file: Path | None = None) -> HouseError:
+        return HouseError(self.house.id, file or self.path, problem)
+
+    def read_doc(self) -> dict:
+        try:
+            doc = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise self.error(f"cannot read scene JSON: {e}") from None
+        scene = doc.get("scene") if isinstance(doc, dict) else None
+        if not (isinstance(scene, dict) and isinstance(scene.get("room"), list)):
+            raise self.error("not a 3D-FRONT scene: no 'scene.room' list")
+        self.info: dict[str, tuple[str, str]] = {}
+        info_path = self.future / MODEL_INFO
+        if info_path.is_file():
+            try:
+                self.info = {
+                    str(m["model_id"]): (m.get("category") or "", m.get("super-category") or "")
+                    for m in json.loads(info_path.read_text(encoding="utf-8"))
+                }
+            except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+                raise self.error(f"cannot read 3D-FUTURE model info: {e}", info_path) from None
+        return doc
+
+    def matrix(self, child: dict) -> np.ndarray:
+        """Child placement ``pos + R(rot) · (scale ⊙ v)`` as a 4×4."""
+        try:
+            pos = np.asarray(child.get("pos", [0, 0, 0]), dtype=np.float64)
+            rot = np.asarray(child.get("rot", [0, 0, 0, 1]), dtype=np.float64)
+            scale = np.asarray(child.get("scale", [1, 1, 1]), dtype=np.float64)
+            ok = pos.shape == (3,) and rot.shape == (4,) and scale.shape == (3,)
+            ok = ok and all(np.isfinite(a).all() for a in (pos, rot, scale)) and np.linalg.norm(rot) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise self.error(f"child {child.get('instanceid', child.get('ref'))!r}: pos/rot/scale must be "
+                             "3, 4 (a non-zero quaternion x, y, z, w) and 3 finite numbers")
+        m = np.eye(4)
+        m[:3, :3] = quaternion_matrix(rot) * scale
+        m[:3, 3] = pos
+        return m
+
+    def model(self, jid: str) -> ObjMesh | None:
+        """The 3D-FUTURE model ``jid`` (its texture.png as texture), None when missing."""
+        if jid not in self._models:
+            file = self.future / jid / "raw_model.obj"
+            if not file.is_file():
+                self.house.warnings.append(f"furniture model {jid}: {file} is missing, skipped")
+                self._models[jid] = None
+            else:
+                try:
+                    mesh = read_obj(file)
+                except (OSError, ValueError) as e:
+                    raise self.error(f"cannot read OBJ: {e}", file) from None
+                texture = file.parent / "texture.png"
+                if texture.is_file():
+                    base = (mesh.material or Material()).base_color
+                    mesh = replace(mesh, material=Material(base_color=base, texture=texture))
+                self._models[jid] = mesh
+        return self._models[jid]
+
+    def category(self, names, what: str) -> tuple[str, int] | None:
+        """(label, NYU40 id) of a piece, or None when it is dropped."""
+        label, cid, dropped = lookup(names)
+        if dropped:
+            return None
+        return label, resolve(self.house, label or f"{what} without a category", cid,
+                              strict=self.strict, file=self.path)
+
+    def furniture(self, entry: dict, child: dict, room_id: str | None) -> None:
+        jid = str(entry.get("jid") or "")
+        info = self.info.get(jid, ("", ""))
+        cat = self.category([entry.get("category"), *info, entry.get("title")], "furniture")
+        if cat is None:
+            return
+        mesh = self.model(jid)
+        if mesh is None:
+            return
+        label, cid = cat
+        v, f = place(mesh.vertices, mesh.faces, self.matrix(child))
+        make_instance(self.house, name=f"{label or 'furniture'}#{child.get('instanceid', entry.get('uid'))}",
+                      category=cid, label=label, room_id=room_id, vertices=v, faces=f, uv=mesh.uv,
+                      file=self.future / jid / "raw_model.obj", material=mesh.material)
+
+    def mesh(self, entry: dict, child: dict, room_id: str | None, materials: dict) -> None:
+        cat = self.category([entry.get("type")], "mesh")
+        if cat is None:
+            return
+        label, cid = cat
+        uid = entry.get("uid")
+        try:
+            xyz = np.asarray(entry.get("xyz", []), dtype=np.float64).reshape(-1, 3)
+            faces = np.asarray(entry.get("faces", []), dtype=np.int64).reshape(-1, 3)
+        except (TypeError, ValueError) as e:
+            raise self.error(f"mesh {uid!r}: 'xyz' and 'faces' must be flat lists of 3k numbers ({e})"
+                             ) from None
+        uv = entry.get("uv") or None
+        if uv is not None:
+            try:
+                uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+            except (TypeError, ValueError):
+                uv = None
+            if uv is not None and (len(uv) != len(xyz) or not np.isfinite(uv).all()):
+                uv = None
+        v, f = place(xyz, faces, self.matrix(child))
+        make_instance(self.house, name=f"{label or 'mesh'}#{child.get('instanceid', uid)}", category=cid,
+                      label=label, room_id=room_id, vertices=v, faces=f, uv=uv, file=self.path,
+                      material=self.material(materials.get(entry.get("material"))))
+
+    def material(self, entry: dict | None) -> Material:
+        """A mesh material: ``color`` (RGB or RGBA, 0–255) and the texture its URL names."""
+        if not isinstance(entry, dict):
+            return Material()
+        try:
+            c = np.asarray(entry.get("color") or [], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            c = np.empty(0)
+        base = Material().base_color
+        if 3 <= len(c) <= 4 and np.isfinite(c).all():
+            base = tuple(float(x) for x in np.clip(np.append(c / 255, 1.0)[:4], 0, 1))
+        texture = None
+        url = str(entry.get("texture") or "").rstrip("/")
+        if "/" in url:
+            cand = self.textures / url.split("/")[-2] / "texture.png"
+            texture = cand if cand.is_file() else None
+        return Material(base_color=base, texture=texture)
+
+
+def load_house(path: Path, options: LoadOptions) -> House:
+    """Read one 3D-FRONT scene JSON (its furniture from the 3D-FUTURE model folder)."""
+    r = _Reader(Path(path), options)
+    doc = r.read_doc()
+    furniture = {f.get("uid"): f for f in doc.get("furniture") or [] if isinstance(f, dict)}
+    meshes = {m.get("uid"): m for m in doc.get("mesh") or [] if isinstance(m, dict)}
+    materials = {m.get("uid"): m for m in doc.get("material") or [] if isinstance(m, dict)}
+    if furniture and not r.future.is_dir():
+        raise r.error("3D-FUTURE model folder not found (pass --future-dir)", r.future)
+    invalid = 0
+    for room in doc["scene"]["room"]:
+        if not isinstance(room, dict):
+            continue
+        # the writer's convention for pieces outside any room: a room without an instanceid
+        room_id = str(room.get("instanceid") or "") or None
+        if room_id is not None:
+            r.house.rooms.append(Room(room_id, str(room.get("type") or ""), 0))
+        for child in room.get("children") or []:
+            ref = child.get("ref") if isinstance(child, dict) else None
+            if ref in furniture:
+                if furniture[ref].get("valid", True) is False:
+                    invalid += 1
+                    continue
+                r.furniture(furniture[ref], child, room_id)
+            elif ref in meshes:
+                r.mesh(meshes[ref], child, room_id, materials)
+    if invalid:
+        r.house.warnings.append(f"{invalid} placed furniture pieces are marked invalid (unreleased), skipped")
+    return r.house.check_not_empty()
+
+
+# --------------------------------------------------------------------------------------
+# Writer
+# --------------------------------------------------------------------------------------
+
+
+def _source_name(inst: Instance, fallback: str | None) -> str:
+    """The instance's label when it maps back to its class (given ``fallback``), else the NYU40 name."""
+    name = NYU40_NAMES[inst.category]
+    return inst.label if inst.label and lookup([inst.label, fallback])[1] == inst.category else name
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """(n, 3) float64 area-weighted vertex normals (zero for unused vertices)."""
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def write_house(house: House, root: str | Path) -> Path:
+    """Write ``house`` into the 3D-FRONT root ``root`` and return the path of its scene JSON.
+
+    - Envelope instances become inline ``mesh`` entries (world coordinates, identity child
+      placement) with a ``material`` entry (colour rounded to 0–255; a texture is copied to
+      ``3D-FRONT-texture/<id>/texture.png``). Their ``type`` is the label when it maps back
+      to the same class, else the NYU40 name.
+    - Every other instance becomes a 3D-FUTURE model ``3D-FUTURE-model/<jid>/raw_model.obj``
+      (+ ``model.mtl``, ``texture.png``) in coordinates relative to the centre of its base,
+      placed by ``pos``; its ``category`` is its label when that maps back to the same class
+      (``model_info.json`` gets the NYU40 name as ``super-category``, merged with the entries
+      already there), else the NYU40 name. jids are UUIDs derived from house id and index.
+    - Rooms keep their ids (``instanceid``) and types; instances outside any room go into a
+      last room without ``instanceid``, which the loader reads as "no room".
+
+    Read back, instances come room by room (rooms in ``house.rooms`` order, then rooms known
+    only from instances, then the room-less instances), in house order within a room.
+    """
+    root = Path(root)
+    scene_dir, future, textures = root / SCENE_DIR, root / MODEL_DIR, root / TEXTURE_DIR
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    future.mkdir(parents=True, exist_ok=True)
+    order = [r.id for r in house.rooms]
+    for inst in house.instances:
+        if inst.room_id not in order:
+            order.append(inst.room_id)
+    types = {r.id: r.type for r in house.rooms}
+    children: dict[str | None, list[dict]] = {rid: [] for rid in order}
+    furniture, meshes, materials, infos = [], [], [], []
+    identity = {"pos": [0.0, 0.0, 0.0], "rot": [0.0, 0.0, 0.0, 1.0], "scale": [1.0, 1.0, 1.0]}
+    for k, inst in enumerate(house.instances):
+        jid = str(uuid.uuid5(uuid.NAMESPACE_URL, f"sceneforge:{house.id}:{k}"))
+        if inst.envelope:
+            uid = f"{k}/mesh"
+            texture = ""
+            if inst.material.texture is not None:
+                (textures / jid).mkdir(parents=True, exist_ok=True)
+                save_texture(inst.material.texture, textures / jid / "texture.png")
+                texture = f"{TEXTURE_DIR}/{jid}/texture.png"
+            materials.append({"uid": f"{k}/material", "jid": jid, "texture": texture, "normaltexture": "",
+                              "color": [round(c * 255) for c in inst.material.base_color],
+                              "colorMode": "texture" if texture else "color"})
+            meshes.append({
+                "uid": uid, "jid": jid, "instanceid": f"mesh{k}", "type": _source_name(inst, None),
+                "xyz": inst.vertices.reshape(-1).tolist(),
+                "normal": _vertex_normals(inst.vertices, inst.faces).reshape(-1).tolist(),
+                "uv": [] if inst.uv is None else inst.uv.astype(np.float64).reshape(-1).tolist(),
+                "faces": inst.faces.reshape(-1).tolist(), "material": f"{k}/material",
+            })
+            children[inst.room_id].append({"ref": uid, "instanceid": f"mesh/{k}", **identity})
+        else:
+            uid = f"{k}/model"
+            name = _source_name(inst, NYU40_NAMES[inst.category])
+            lo, hi = inst.vertices.min(0), inst.vertices.max(0)
+            origin = np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
+            write_obj(future / jid / "raw_model.obj", inst.vertices - origin, inst.faces, inst.uv,
+                      inst.material, mtl_name="model.mtl", texture_name="texture.png")
+            furniture.append({"uid": uid, "jid": jid, "title": inst.label, "category": name,
+                              "size": (hi - lo).tolist(), "valid": True})
+            infos.append({"model_id": jid, "category": name, "super-category": NYU40_NAMES[inst.category]})
+            children[inst.room_id].append({"ref": uid, "instanceid": f"furniture/{k}",
+                                           **identity, "pos": origin.tolist()})
+    rooms = [{"type": types.get(rid, ""), "instanceid": rid or "", **identity, "children": children[rid]}
+             for rid in order if rid is not None]
+    if None in children:
+        rooms.append({"type": "", "instanceid": "", **identity, "children": children[None]})
+    _merge_model_info(future / MODEL_INFO, infos)
+    doc = {"uid": house.id, "north_vector": [0, 1, 0], "furniture": furniture, "mesh": meshes,
+           "material": materials, "scene": {"ref": "-1", **identity, "room": rooms}}
+    path = scene_dir / f"{house.id}.json"
+    path.write_text(json.dumps(doc) + "\n")
+    return path
+
+
+def _merge_model_info(path: Path, entries: list[dict]) -> None:
+    old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else []
+    ids = {e["model_id"] for e in entries}
+    path.write_text(json.dumps([e for e in old if e.get("model_id") not in ids] + entries, indent=1) + "\n")
