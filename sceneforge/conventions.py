@@ -63,18 +63,28 @@ def nyu40_id(name: str) -> int | None:
     return NYU40_ALIASES.get(key)
 
 
-def _norm(label: str | None) -> str:
+def normalize_label(label: str | None) -> str:
+    """A source category name in the form class lists use: lower case, ``_`` for spaces/dashes."""
     return (label or "").strip().lower().replace(" ", "_").replace("-", "_")
+
+
+def in_classes(category: int, label: str | None, names) -> bool:
+    """True when NYU40 ``category`` or the source ``label`` is one of ``names``.
+
+    Class lists of the paper mix NYU40 names with source names NYU40 lacks (fireplace,
+    plant, chandelier), so every such rule matches both.
+    """
+    return NYU40_NAMES[category] in names or normalize_label(label) in names
 
 
 def is_envelope(category: int, label: str | None = None) -> bool:
     """True when an instance of NYU40 ``category`` (source category ``label``) is room envelope."""
-    return NYU40_NAMES[category] in ENVELOPE_NAMES or _norm(label) in ENVELOPE_NAMES
+    return in_classes(category, label, ENVELOPE_NAMES)
 
 
 def is_dropped(category: int, label: str | None = None) -> bool:
     """True when an instance must be dropped at load time (persons and plants)."""
-    return NYU40_NAMES[category] in DROPPED_NAMES or _norm(label) in DROPPED_NAMES
+    return in_classes(category, label, DROPPED_NAMES)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,220 @@
+"""The all-hit tracer: the Open3D engine against the numpy reference, hit for hit, and the
+hit rules shared by both (plane distances, sorting, merging same-instance hits)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from sceneforge.conventions import tol
+from sceneforge.errors import HouseError
+from sceneforge.houses import House, make_instance
+from sceneforge.raytrace import HouseTracer
+from sceneforge.raytrace.reference import moller_trumbore
+
+BACKENDS = ("open3d", "reference")
+
+
+def add_box(house: House, name: str, category: int, lo, hi):
+    b = trimesh.creation.box(bounds=[lo, hi])
+    return make_instance(house, name=name, category=category, label=name, room_id=None,
+                         vertices=b.vertices, faces=b.faces)
+
+
+def add_quad(house: House, name: str, category: int, corners):
+    """A single-sided quad; corners (4, 3) counter-clockwise seen from its front."""
+    return make_instance(house, name=name, category=category, label=name, room_id=None,
+                         vertices=corners, faces=[[0, 1, 2], [0, 2, 3]])
+
+
+def random_house(seed: int) -> House:
+    """Triangle soups (objects and envelope) and closed boxes (some touching) in a 2 m cube."""
+    rng = np.random.default_rng(seed)
+    h = House(id=f"random{seed}", instances=[])
+    for k, category in enumerate((40, 40, 1, 1)):
+        v = rng.uniform(0, 2, (30, 3))
+        make_instance(h, name=f"soup{k}", category=category, label="soup", room_id=None,
+                      vertices=v, faces=rng.integers(0, 30, (20, 3)))
+    for k in range(3):
+        lo = rng.uniform(0, 1.5, 3)
+        add_box(h, f"box{k}", 3, lo, lo + rng.uniform(0.1, 0.5, 3))
+    lo = h.instances[-1].vertices.min(0)
+    add_box(h, "touching", 3, lo - [0.3, 0, 0], lo + [0, 0.2, 0.2])
+    return h
+
+
+def random_rays(rng, n: int):
+    origins = rng.uniform(-0.5, 2.5, (n, 3))
+    directions = rng.normal(size=(n, 3))
+    return origins, directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fast_engine_equals_reference_hit_for_hit(seed):
+    house = random_house(seed)
+    origins, directions = random_rays(np.random.default_rng(100 + seed), 2000)
+    fast = HouseTracer(house).all_hits(origins, directions)
+    ref = HouseTracer(house, backend="reference").all_hits(origins, directions)
+    assert len(ref.t) > 1000
+    np.testing.assert_array_equal(fast.offsets, ref.offsets)
+    np.testing.assert_array_equal(fast.instance, ref.instance)
+    np.testing.assert_array_equal(fast.triangle, ref.triangle)
+    np.testing.assert_array_equal(fast.front_facing, ref.front_facing)
+    np.testing.assert_allclose(fast.t, ref.t, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_hits_are_sorted_real_crossings(seed):
+    """Every reported hit lies on its triangle, at its distance, in ascending order per ray."""
+    house = random_house(seed)
+    origins, directions = random_rays(np.random.default_rng(seed), 500)
+    tracer = HouseTracer(house)
+    hits = tracer.all_hits(origins, directions)
+    ray = hits.ray_ids()
+    same_ray = ray[1:] == ray[:-1]
+    assert (np.diff(hits.t)[same_ray] >= 0).all()
+    corners = np.stack([house.instances[i].vertices[house.instances[i].faces[f]]
+                        for i, f in zip(hits.instance, hits.triangle)])
+    hit, t_mt = moller_trumbore(origins[ray], directions[ray], corners[:, 0], corners[:, 1], corners[:, 2])
+    assert hit.all()
+    np.testing.assert_allclose(hits.t, t_mt, rtol=1e-9, atol=1e-9)
+    normal = tracer.face_normals(hits.instance, hits.triangle)
+    np.testing.assert_array_equal(hits.front_facing, np.einsum("ij,ij->i", normal, directions[ray]) < 0)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_shared_edge_counts_once_and_back_faces_count(backend):
+    """A ray through the diagonal of each face of a box: two hits, entry (front) and exit (back)."""
+    h = House(id="box", instances=[])
+    add_box(h, "box", 3, (0, 0, 0), (1, 1, 1))
+    hits = HouseTracer(h, backend=backend).all_hits([[0.5, 2.0, 0.5]], [[0.0, -1.0, 0.0]])
+    np.testing.assert_array_equal(hits.offsets, [0, 2])
+    np.testing.assert_allclose(hits.t, [1.0, 2.0], atol=1e-12)
+    np.testing.assert_array_equal(hits.front_facing, [True, False])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_coincident_hits_of_different_instances_are_all_kept(backend):
+    """A cabinet standing on the floor and against a wall: the ray leaving the cabinet through
+    its bottom or back also hits the floor or the wall at the same distance. (Open3D's own
+    filter drops a hit equal in distance to the previous one of the same geometry, which is
+    why each instance is a separate geometry.)"""
+    h = House(id="touch", instances=[])
+    add_box(h, "floor", 2, (-2, -0.1, -2), (2, 0, 2))
+    add_box(h, "wall", 1, (-2, 0, 1), (2, 3, 1.1))
+    add_box(h, "cabinet", 3, (-0.5, 0, 0.5), (0.5, 1, 1))
+    tracer = HouseTracer(h, backend=backend)
+    down = tracer.all_hits([[0.0, 2.0, 0.75]], [[0.0, -1.0, 0.0]])
+    # exact ties are ordered by instance index
+    np.testing.assert_allclose(down.t, [1.0, 2.0, 2.0, 2.1], atol=1e-12)
+    np.testing.assert_array_equal(down.instance, [2, 0, 2, 0])
+    forward = tracer.all_hits([[0.0, 0.5, 0.0]], [[0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(forward.t, [0.5, 1.0, 1.0, 1.1], atol=1e-12)
+    np.testing.assert_array_equal(forward.instance, [2, 1, 2, 1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_same_instance_hits_merge_within_tolerance(backend):
+    """Two sheets of one instance 5e-5 m apart count once; 2e-4 m apart they count twice."""
+    h = House(id="sheets", instances=[])
+    for name, gap in (("close", 5e-5), ("apart", 2e-4)):
+        x0 = 0.0 if name == "close" else 2.0
+        corners = np.array([[x0, 0, 0], [x0 + 1, 0, 0], [x0 + 1, 0, 1], [x0, 0, 1]], dtype=float)
+        make_instance(h, name=name, category=40, label=name, room_id=None,
+                      vertices=np.r_[corners, corners + [0, -gap, 0]],
+                      faces=[[0, 2, 1], [0, 3, 2], [4, 6, 5], [4, 7, 6]])
+    hits = HouseTracer(h, backend=backend).all_hits([[0.3, 1.0, 0.6], [2.3, 1.0, 0.6]], [[0, -1.0, 0]] * 2)
+    np.testing.assert_array_equal(hits.counts, [1, 2])
+    np.testing.assert_allclose(hits.t, [1.0, 1.0, 1.0002], atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_frontal_hits_are_all_hits_up_to_the_first_envelope_hit(backend):
+    """Every object hit up to 1 mm behind the first envelope hit, and that envelope hit."""
+    house = random_house(4)
+    assert {i.envelope for i in house.instances} == {True, False}
+    origins, directions = random_rays(np.random.default_rng(8), 1000)
+    tracer = HouseTracer(house, backend=backend)
+    every = tracer.all_hits(origins, directions)
+    ray = every.ray_ids()
+    envelope = np.array([i.envelope for i in house.instances])[every.instance]
+    first_wall = np.full(len(origins), np.inf)
+    np.minimum.at(first_wall, ray[envelope], every.t[envelope])
+    expected = np.where(envelope, every.t == first_wall[ray], every.t <= first_wall[ray] + tol.envelope_slack)
+    assert 0 < expected.sum() < len(expected)
+    frontal = tracer.frontal_hits(origins, directions)
+    wanted = every.select(expected)
+    np.testing.assert_array_equal(frontal.offsets, wanted.offsets)
+    np.testing.assert_array_equal(frontal.instance, wanted.instance)
+    np.testing.assert_array_equal(frontal.triangle, wanted.triangle)
+    np.testing.assert_array_equal(frontal.t, wanted.t)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_frontal_hits_without_objects_or_without_envelope(backend):
+    walls = House(id="walls", instances=[])
+    add_box(walls, "wall", 1, (0, 0, 1), (1, 1, 1.1))
+    hits = HouseTracer(walls, backend=backend).frontal_hits([[0.5, 0.5, 0]] * 2, [[0, 0, 1.0], [0, 0, -1.0]])
+    np.testing.assert_array_equal(hits.offsets, [0, 1, 1])
+    np.testing.assert_allclose(hits.t, [1.0])
+    boxes = House(id="boxes", instances=[])
+    add_box(boxes, "box", 3, (0, 0, 1), (1, 1, 1.1))
+    hits = HouseTracer(boxes, backend=backend).frontal_hits([[0.5, 0.5, 0]], [[0, 0, 1.0]])
+    np.testing.assert_allclose(hits.t, [1.0, 1.1])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_first_hit_is_the_first_of_all_hits(backend):
+    house = random_house(3)
+    origins, directions = random_rays(np.random.default_rng(7), 1000)
+    tracer = HouseTracer(house, backend=backend)
+    hits = tracer.all_hits(origins, directions)
+    first = tracer.first_hit(origins, directions)
+    has = hits.counts > 0
+    assert (~has).any() and has.any()
+    np.testing.assert_array_equal(first.hit, has)
+    i = hits.offsets[:-1][has]
+    np.testing.assert_allclose(first.t[has], hits.t[i], atol=1e-12)
+    np.testing.assert_array_equal(first.instance[has], hits.instance[i])
+    np.testing.assert_array_equal(first.front_facing[has], hits.front_facing[i])
+    np.testing.assert_allclose(first.normal[has], tracer.face_normals(hits.instance[i], hits.triangle[i]))
+    assert np.isnan(first.t[~has]).all() and (first.instance[~has] == -1).all()
+    assert np.isnan(first.normal[~has]).all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_closest_distance(backend):
+    h = House(id="box", instances=[])
+    add_box(h, "box", 3, (0, 0, 0), (1, 2, 3))
+    points = [[0.5, 1.0, 1.5], [-0.3, 1.0, 1.0], [2.0, 3.0, 1.0], [0.5, 0.5, -0.25]]
+    expected = [0.5, 0.3, np.hypot(1.0, 1.0), 0.25]
+    np.testing.assert_allclose(HouseTracer(h, backend=backend).closest_distance(points), expected, atol=1e-6)
+
+
+def test_hits_select_keeps_csr_layout():
+    house = random_house(0)
+    origins, directions = random_rays(np.random.default_rng(1), 300)
+    hits = HouseTracer(house).all_hits(origins, directions)
+    keep = hits.instance % 2 == 0
+    sub = hits.select(keep)
+    np.testing.assert_array_equal(sub.ray_ids(), hits.ray_ids()[keep])
+    np.testing.assert_array_equal(sub.t, hits.t[keep])
+
+
+def test_bad_input_gives_specific_errors():
+    with pytest.raises(HouseError, match="empty.*no triangles"):
+        HouseTracer(House(id="empty", instances=[]))
+    h = House(id="box", instances=[])
+    add_box(h, "box", 3, (0, 0, 0), (1, 1, 1))
+    with pytest.raises(ValueError, match="backend 'embree9'"):
+        HouseTracer(h, backend="embree9")
+    tracer = HouseTracer(h)
+    with pytest.raises(ValueError, match="unit vectors"):
+        tracer.all_hits([[0, 0, 0]], [[0, 0, 2.0]])
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        tracer.all_hits([[0, 0, 0]], [[0, 0, 1.0], [1, 0, 0]])
+    with pytest.raises(ValueError, match="finite"):
+        tracer.first_hit([[0, np.nan, 0]], [[0, 0, 1.0]])
+    empty = tracer.all_hits(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert empty.n_rays == 0 and len(empty.t) == 0
