@@ -1,0 +1,602 @@
+"""The virtual overhead camera of a frontal view and its ground truth (SPEC §6, §7).
+
+Frames used here:
+
+- **World**: metres, +Y up (SPEC §1).
+- **Gravity-aligned frame** of a frontal camera (:class:`GravityFrame`): origin at the
+  camera centre, coordinates ``(right, up, forward)`` where ``forward`` is the view
+  direction flattened onto the floor plane, ``up`` is world +Y and ``right`` is
+  ``forward × up``. The overhead box lives on its floor plane as ``(right, forward)``.
+- **Overhead camera** (:class:`OverheadCamera`): orthographic, OpenCV axes like every
+  camera of the project — z forward = straight down, image y (down) = −forward, so the
+  top of the overhead image is where the frontal camera looks, and image x = right.
+
+Three heuristics *(ref)* each propose a box on the floor plane (:class:`Candidate`, kept
+with its weight and the reason it was rejected); their weighted average, padded to a
+square, is the overhead camera's extent. Ground truth is traced straight down with the
+frontal multi-hit rules (:func:`sceneforge.layers.layers_from_hits`) on a reduced set of
+surfaces (:func:`overhead_truth`).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .conventions import NYU40_IDS, in_classes
+from .errors import MissingDependencyError, SceneforgeError
+from .layers import Layers, instance_labels, layers_from_hits
+
+if TYPE_CHECKING:
+    import matplotlib.figure
+
+    from .cameras import Camera
+    from .houses import House
+
+CANDIDATE_NAMES: tuple[str, ...] = ("depth_statistics", "envelope_frustum", "majority_room")
+FLOOR = NYU40_IDS["floor"]
+
+
+@dataclass(frozen=True)
+class OverheadConfig:
+    """How the overhead camera is placed and its ground truth traced. Defaults: the reference."""
+
+    #: weights of the (depth statistics, envelope/frustum, majority room) boxes
+    weights: tuple[float, float, float] = (1.0, 1.0, 2.0)
+    #: candidates covering less floor area than this (m²) get weight 0
+    min_area: float = 0.5
+    #: overhead image size in pixels (square)
+    resolution: int = 300
+    #: the camera sits this far (m) below the highest frontal point of D1, D2 and D5,
+    #: so that it is under the ceiling
+    below_top: float = 0.05
+
+    #: depth statistics: fewest D1–D4 points
+    stats_min_points: int = 40
+    #: depth statistics: box half-size = this × standard deviation
+    stats_std_scale: float = 1.5
+    #: depth statistics: smallest half-size (m), per axis
+    stats_min_half_size: float = 0.5
+    #: depth statistics: the box centre is pulled to within this distance (m) of the camera
+    stats_max_distance: float = 9.0
+
+    #: envelope/frustum: centre distance = this × mean camera-z of the D5 points
+    envelope_depth_scale: float = 0.8
+    #: envelope/frustum: the centre distance is clamped to this range (m)
+    envelope_depth_range: tuple[float, float] = (1.0, 7.0)
+    #: envelope/frustum: with fewer D5 points than this, the centre distance is the default
+    envelope_min_points: int = 10
+    #: envelope/frustum: centre distance (m) when D5 has too few points
+    envelope_default_depth: float = 4.0
+    #: envelope/frustum: half-size = this × tan(horizontal half-FOV) × centre distance
+    envelope_zoom: float = 0.9
+
+    #: majority room: fewest visible object pixels voting for a room
+    room_min_votes: int = 20
+    #: majority room: fewest object points of the winning room
+    room_min_points: int = 15
+    #: majority room: object points are used between these distances (m) from the camera
+    room_distance_range: tuple[float, float] = (1.5, 9.0)
+    #: majority room: the box's half-size is multiplied by this
+    room_growth: float = 1.05
+    #: majority room: classes whose points are ignored (NYU40 names or source labels)
+    room_excluded: tuple[str, ...] = ("void", "person", "plant", "chandelier", "decoration")
+
+    #: ground truth: classes ignored when tracing down (NYU40 names or source labels)
+    truth_excluded: tuple[str, ...] = (
+        "void", "person", "plant", "chandelier", "ceiling_fan", "decoration",
+    )
+    #: ground truth: floor hits closer than this (m) to the overhead camera are ignored
+    floor_clearance: float = 0.5
+
+    def __post_init__(self):
+        if len(self.weights) != 3 or min(self.weights) < 0:
+            raise ValueError(f"weights must be 3 numbers >= 0, got {self.weights}")
+        if self.resolution < 1:
+            raise ValueError(f"resolution must be at least 1 pixel, got {self.resolution}")
+        for name in ("envelope_depth_range", "room_distance_range"):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi:
+                raise ValueError(f"{name} must be (low, high) with 0 <= low <= high, got {(lo, hi)}")
+
+
+# ---------------------------------------------------------------------------- frames
+
+
+@dataclass(frozen=True, eq=False)
+class GravityFrame:
+    """The gravity-aligned frame of a frontal camera.
+
+    origin  : (3,) float64  camera centre, world
+    right   : (3,) float64  unit, horizontal
+    forward : (3,) float64  unit, horizontal: the view direction flattened
+    theta   : float         angle (rad) between the view direction and gravity (−Y)
+    """
+
+    origin: np.ndarray
+    right: np.ndarray
+    forward: np.ndarray
+    theta: float
+
+    @property
+    def axes(self) -> np.ndarray:
+        """(3, 3) float64 rows ``right, up, forward`` in world coordinates."""
+        return np.stack([self.right, np.array([0.0, 1.0, 0.0]), self.forward])
+
+    def to_frame(self, points: np.ndarray) -> np.ndarray:
+        """World points (n, 3) → frame coordinates (n, 3) ``(right, up, forward)``."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """Frame coordinates (n, 3) ``(right, up, forward)`` → world points (n, 3)."""
+        return np.asarray(points, dtype=np.float64) @ self.axes + self.origin
+
+
+def gravity_frame(camera: "Camera") -> GravityFrame:
+    """The gravity-aligned frame of ``camera``. Raises for a camera looking straight up or down."""
+    T = np.asarray(camera.cam_to_world, dtype=np.float64)
+    view = T[:3, 2] / np.linalg.norm(T[:3, 2])
+    flat = np.array([view[0], 0.0, view[2]])
+    if np.linalg.norm(flat) < 1e-6:
+        raise SceneforgeError(
+            "the frontal camera looks straight up or down: its view direction has no "
+            "horizontal part to align the overhead camera with"
+        )
+    forward = flat / np.linalg.norm(flat)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    theta = float(np.arccos(np.clip(-view[1], -1.0, 1.0)))
+    return GravityFrame(origin=T[:3, 3].copy(), right=right, forward=forward, theta=theta)
+
+
+# ----------------------------------------------------------------------- candidates
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """An axis-aligned box on the floor plane of a gravity-aligned frame.
+
+    lo, hi : (2,) float64  corners as ``(right, forward)``, metres
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        """(2,) float64 ``(right, forward)``."""
+        return 0.5 * (self.lo + self.hi)
+
+    @property
+    def half_size(self) -> np.ndarray:
+        """(2,) float64 half widths along ``(right, forward)``."""
+        return 0.5 * (self.hi - self.lo)
+
+    @property
+    def area(self) -> float:
+        """Floor area, m²."""
+        w = self.hi - self.lo
+        return float(w[0] * w[1])
+
+    def square(self) -> "Box":
+        """The smallest square with the same centre that contains this box."""
+        half = float(self.half_size.max())
+        return Box(self.center - half, self.center + half)
+
+    def __repr__(self) -> str:
+        return (f"Box(right {self.lo[0]:.3f}..{self.hi[0]:.3f}, "
+                f"forward {self.lo[1]:.3f}..{self.hi[1]:.3f})")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One heuristic's proposal: its box (None when it could not make one), the weight
+    it got in the average (0 when rejected), why it was rejected, and how many points
+    it used. The heuristics return weight 1 with a box and 0 without; :func:`combine`
+    sets the final weights."""
+
+    name: str
+    box: Box | None
+    weight: float
+    reason: str | None = None
+    n_points: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class FrontalPoints:
+    """What the heuristics need from a frontal view, in its gravity-aligned frame.
+
+    objects         : (n, 3) float64  D1–D4 points ``(right, up, forward)``, metres
+    object_room     : (n,) object     room id of each point's instance (None: no room)
+    object_excluded : (n,) bool       the point's instance is of a class the room box ignores
+    envelope_z      : (k,) float64    planar depth (camera z) of the D5 points
+    voter_rooms     : (v,) object     room id of each visible object pixel (D1; None: no room)
+    top             : float           highest ``up`` of the D1, D2 and D5 points
+    """
+
+    objects: np.ndarray
+    object_room: np.ndarray
+    object_excluded: np.ndarray
+    envelope_z: np.ndarray
+    voter_rooms: np.ndarray
+    top: float
+
+
+def _rejected(name: str, reason: str, n_points: int = 0) -> Candidate:
+    return Candidate(name, None, 0.0, reason, n_points)
+
+
+def depth_statistics_box(objects: np.ndarray, config: OverheadConfig) -> Candidate:
+    """Heuristic 1: mean ± scale·std of the D1–D4 points on the floor plane.
+
+    All four object layers are used (the reference used D1, D2 twice by mistake). Per
+    axis, the half-size is at least ``stats_min_half_size``; a centre further than
+    ``stats_max_distance`` from the camera (on the floor plane) is pulled back onto that
+    circle, as the reference does, instead of rejecting the box.
+    """
+    name = CANDIDATE_NAMES[0]
+    xz = np.asarray(objects, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
+    if len(xz) < config.stats_min_points:
+        return _rejected(name, f"{len(xz)} object points < {config.stats_min_points}", len(xz))
+    mean = xz.mean(axis=0)
+    half = np.maximum(config.stats_std_scale * xz.std(axis=0), config.stats_min_half_size)
+    dist = float(np.linalg.norm(mean))
+    if dist > config.stats_max_distance:
+        mean = mean * (config.stats_max_distance / dist)
+    return Candidate(name, Box(mean - half, mean + half), 1.0, None, len(xz))
+
+
+def envelope_frustum_box(
+    envelope_z: np.ndarray, tan_half_fov: float, config: OverheadConfig
+) -> Candidate:
+    """Heuristic 2: a square on the flattened principal axis, sized by the frustum.
+
+    Its centre is at distance d = ``envelope_depth_scale`` × mean D5 camera-z (clamped to
+    ``envelope_depth_range``; ``envelope_default_depth`` with too few D5 points) straight
+    ahead; its half-size is ``envelope_zoom`` × tan(horizontal half-FOV) × d.
+    """
+    z = np.asarray(envelope_z, dtype=np.float64).ravel()
+    if len(z) < config.envelope_min_points:
+        d = config.envelope_default_depth
+    else:
+        d = float(np.clip(config.envelope_depth_scale * z.mean(), *config.envelope_depth_range))
+    half = config.envelope_zoom * tan_half_fov * d
+    centre = np.array([0.0, d])
+    return Candidate(CANDIDATE_NAMES[1], Box(centre - half, centre + half), 1.0, None, len(z))
+
+
+def majority_room_box(
+    objects: np.ndarray,
+    object_room: np.ndarray,
+    object_excluded: np.ndarray,
+    voter_rooms: np.ndarray,
+    config: OverheadConfig,
+) -> Candidate:
+    """Heuristic 3: bounding box of the object points of the room most pixels see.
+
+    Visible object pixels vote for their instance's room (ties: the smallest room id);
+    the winner's object points between ``room_distance_range`` from the camera (3D
+    distance), excluding ``room_excluded`` classes, are boxed and the box's half-size
+    is grown by ``room_growth``.
+    """
+    name = CANDIDATE_NAMES[2]
+    votes = Counter(r for r in voter_rooms if r is not None)
+    n_votes = sum(votes.values())
+    if n_votes < config.room_min_votes:
+        return _rejected(name, f"{n_votes} room votes < {config.room_min_votes}")
+    room = min(votes, key=lambda r: (-votes[r], str(r)))
+    pts = np.asarray(objects, dtype=np.float64).reshape(-1, 3)
+    dist = np.linalg.norm(pts, axis=1)
+    lo_d, hi_d = config.room_distance_range
+    use = (np.asarray(object_room, dtype=object) == room) & ~np.asarray(object_excluded, bool)
+    use &= (dist >= lo_d) & (dist <= hi_d)
+    n = int(use.sum())
+    if n < config.room_min_points:
+        return _rejected(name, f"{n} points of room {room!r} < {config.room_min_points}", n)
+    xz = pts[use][:, [0, 2]]
+    centre, half = 0.5 * (xz.min(0) + xz.max(0)), 0.5 * (xz.max(0) - xz.min(0))
+    half = half * config.room_growth
+    return Candidate(name, Box(centre - half, centre + half), 1.0, None, n)
+
+
+def combine(candidates: tuple[Candidate, ...], config: OverheadConfig) -> tuple[tuple[Candidate, ...], Box]:
+    """Weigh the candidates and average their corners.
+
+    A candidate without a box or covering less than ``min_area`` gets weight 0 (and a
+    reason); the others get their ``weights`` entry. Returns the weighted candidates and
+    the averaged (not yet square) box. Raises :class:`SceneforgeError` when every weight
+    is 0.
+    """
+    weighted = []
+    for cand, w in zip(candidates, config.weights):
+        if cand.box is None:
+            weighted.append(cand)
+        elif cand.box.area < config.min_area:
+            weighted.append(Candidate(cand.name, cand.box, 0.0,
+                                      f"area {cand.box.area:.3f} m² < {config.min_area} m²",
+                                      cand.n_points))
+        else:
+            weighted.append(Candidate(cand.name, cand.box, float(w), None, cand.n_points))
+    weights = np.array([c.weight for c in weighted])
+    if not weights.sum() > 0:
+        raise SceneforgeError(
+            "no overhead box candidate is usable: "
+            + "; ".join(f"{c.name}: {c.reason or 'weight 0'}" for c in weighted)
+        )
+    lo = sum(c.weight * c.box.lo for c in weighted if c.weight > 0) / weights.sum()
+    hi = sum(c.weight * c.box.hi for c in weighted if c.weight > 0) / weights.sum()
+    return tuple(weighted), Box(lo, hi)
+
+
+# --------------------------------------------------------------------------- camera
+
+
+@dataclass(frozen=True, eq=False)
+class OverheadCamera:
+    """An orthographic camera looking straight down (OpenCV axes: z = world −Y).
+
+    cam_to_world : (4, 4) float64  pose; column 1 (image down) is −forward of the frontal
+                   view, so the frontal view direction points to the top of the image
+    half_extent  : float           half the side of the square it sees, metres
+    resolution   : int             image width = height, pixels; pixel centres at integer + 0.5
+    params       : (5,) float64    ``tx, ty`` box centre (right, forward of the frontal
+                   camera), ``tz`` camera height above the floor, ``theta`` angle between
+                   the frontal view direction and gravity, ``sigma`` half-diagonal of the box
+    floor_y      : float           world height of the floor the heights refer to
+    box          : Box             the square it sees, in the frontal gravity-aligned frame
+    candidates   : the three heuristic boxes with their weights and rejection reasons
+    """
+
+    cam_to_world: np.ndarray
+    half_extent: float
+    resolution: int
+    params: np.ndarray
+    floor_y: float
+    box: Box
+    candidates: tuple[Candidate, ...] = field(default=())
+
+    @property
+    def width(self) -> int:
+        return self.resolution
+
+    @property
+    def height(self) -> int:
+        return self.resolution
+
+    def _pixel_centres(self) -> np.ndarray:
+        """(H*W, 2) float64 camera-plane ``(x, y)`` of the pixel centres, row-major."""
+        c = ((np.arange(self.resolution) + 0.5) / self.resolution * 2.0 - 1.0) * self.half_extent
+        y, x = np.meshgrid(c, c, indexing="ij")
+        return np.column_stack([x.ravel(), y.ravel()])
+
+    def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Parallel rays through the pixel centres, row-major.
+
+        Returns origins (H*W, 3) float64 on the camera plane, directions (H*W, 3) float64
+        (all world −Y) and depth_scale (H*W,) float64 (all 1: ray length = planar depth).
+        """
+        xy = self._pixel_centres()
+        R, t = self.cam_to_world[:3, :3], self.cam_to_world[:3, 3]
+        origins = t + xy[:, :1] * R[:, 0] + xy[:, 1:] * R[:, 1]
+        directions = np.broadcast_to(R[:, 2], origins.shape).copy()
+        return origins, directions, np.ones(len(origins))
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (n, 3) → pixel coordinates uv (n, 2) and depth below the camera z (n,)."""
+        R, t = self.cam_to_world[:3, :3], self.cam_to_world[:3, 3]
+        p = (np.asarray(points_world, dtype=np.float64) - t) @ R
+        uv = (p[:, :2] / self.half_extent + 1.0) * 0.5 * self.resolution
+        return uv, p[:, 2]
+
+
+def level_floor_y(house: "House", y: float) -> float:
+    """Floor height of the storey a point at height ``y`` is on (the lowest if it is below all)."""
+    floors = sorted(level.floor_y for level in house.levels)
+    below = [f for f in floors if f <= y]
+    return below[-1] if below else floors[0]
+
+
+def _class_mask(house: "House", names) -> np.ndarray:
+    """(n_inst,) bool: the instance's NYU40 class or its source label is in ``names``."""
+    names = frozenset(names)
+    return np.array([in_classes(i.category, i.label, names) for i in house.instances], dtype=bool)
+
+
+def _layer_points(rays, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (n, 3) of the finite pixels of a planar depth image and their flat indices."""
+    origins, directions, depth_scale = rays
+    flat = np.asarray(depth, dtype=np.float64).ravel()
+    idx = np.flatnonzero(np.isfinite(flat))
+    t = flat[idx] / depth_scale[idx]
+    return origins[idx] + directions[idx] * t[:, None], idx
+
+
+def frontal_points(
+    house: "House", camera: "Camera", layers: Layers, frame: GravityFrame, config: OverheadConfig
+) -> tuple[FrontalPoints, float]:
+    """Collect the heuristics' inputs from a frontal view, and the view's floor height.
+
+    The floor height is the median world height of the D5 pixels whose class is floor,
+    or the house's storey floor under the camera when the view shows no floor.
+    """
+    if layers.shape != camera.shape:
+        raise ValueError(f"layers are {layers.shape} pixels but the camera is {camera.shape} (H, W)")
+    rays = camera.rays()
+    rooms = np.array([i.room_id for i in house.instances] + [None], dtype=object)
+    excluded = np.append(_class_mask(house, config.room_excluded), False)
+    objects, room, skip = [], [], []
+    for layer, inst_layer in ((0, 0), (1, 0), (2, 1), (3, 1)):
+        pts, idx = _layer_points(rays, layers.depth[layer])
+        # -1 (no instance) indexes the appended "no room, not excluded" entry.
+        inst = np.asarray(layers.instance[inst_layer]).ravel()[idx]
+        objects.append(frame.to_frame(pts))
+        room.append(rooms[inst])
+        skip.append(excluded[inst])
+    env_pts, env_idx = _layer_points(rays, layers.depth[4])
+    env_up = frame.to_frame(env_pts)[:, 1]
+    visible = np.asarray(layers.instance[0]).ravel()
+    tops = [objects[0][:, 1], objects[1][:, 1], env_up]
+    if not sum(len(t) for t in tops):
+        raise SceneforgeError("the frontal view sees no surface: cannot place an overhead camera")
+    points = FrontalPoints(
+        objects=np.concatenate(objects),
+        object_room=np.concatenate(room),
+        object_excluded=np.concatenate(skip),
+        envelope_z=np.asarray(layers.depth[4], dtype=np.float64).ravel()[env_idx],
+        voter_rooms=rooms[visible[visible >= 0]],
+        top=float(max(t.max() for t in tops if len(t))),
+    )
+    floor = np.asarray(layers.category[2]).ravel()[env_idx] == FLOOR
+    if floor.any():
+        floor_y = float(np.median(env_pts[floor, 1]))
+    else:
+        floor_y = level_floor_y(house, float(frame.origin[1]))
+    return points, floor_y
+
+
+def place_overhead_camera(
+    frame: GravityFrame,
+    points: FrontalPoints,
+    tan_half_fov: float,
+    floor_y: float,
+    config: OverheadConfig | None = None,
+) -> OverheadCamera:
+    """The overhead camera from a frontal view's points (SPEC §6).
+
+    tan_half_fov : tan of the frontal camera's horizontal half field of view
+    floor_y      : world height of the floor (``tz`` is the camera height above it)
+    """
+    config = config or OverheadConfig()
+    candidates = (
+        depth_statistics_box(points.objects, config),
+        envelope_frustum_box(points.envelope_z, tan_half_fov, config),
+        majority_room_box(points.objects, points.object_room, points.object_excluded,
+                          points.voter_rooms, config),
+    )
+    candidates, box = combine(candidates, config)
+    square = box.square()
+    half = float(square.half_size[0])
+    up = points.top - config.below_top
+    tx, ty = square.center
+    position = frame.to_world(np.array([[tx, up, ty]]))[0]
+    pose = np.eye(4)
+    pose[:3, 0] = frame.right
+    pose[:3, 1] = -frame.forward
+    pose[:3, 2] = (0.0, -1.0, 0.0)
+    pose[:3, 3] = position
+    params = np.array([tx, ty, position[1] - floor_y, frame.theta, half * np.sqrt(2.0)])
+    return OverheadCamera(pose, half, int(config.resolution), params, float(floor_y), square,
+                          candidates)
+
+
+def overhead_camera_and_points(
+    house: "House", camera: "Camera", layers: Layers, config: OverheadConfig | None = None
+) -> tuple[OverheadCamera, FrontalPoints]:
+    """The overhead camera of a frontal view and the frontal points it was chosen from."""
+    config = config or OverheadConfig()
+    frame = gravity_frame(camera)
+    points, floor_y = frontal_points(house, camera, layers, frame, config)
+    tan_half_fov = float(np.tan(camera.half_fov[0]))
+    return place_overhead_camera(frame, points, tan_half_fov, floor_y, config), points
+
+
+def overhead_camera(
+    house: "House", camera: "Camera", layers: Layers, config: OverheadConfig | None = None
+) -> OverheadCamera:
+    """The overhead camera of a frontal view (SPEC §6)."""
+    return overhead_camera_and_points(house, camera, layers, config)[0]
+
+
+# ---------------------------------------------------------------------- ground truth
+
+
+@dataclass(frozen=True, eq=False)
+class OverheadTruth:
+    """Ground truth seen by an overhead camera (SPEC §7).
+
+    layers   : Layers                 5 overhead depth layers (planar = distance below the
+               camera), classes and instances, same rules as the frontal ones
+    height   : (H, W) float32         height above ``floor_y`` of the first object hit;
+               NaN where only the floor or nothing is hit
+    category : (H, W) uint8           NYU40 class of the first object hit, else of the
+               floor below, else 0
+    floor_y  : float                  world height of the floor
+    """
+
+    layers: Layers
+    height: np.ndarray
+    category: np.ndarray
+    floor_y: float
+
+
+def overhead_keep(house: "House", hits, config: OverheadConfig | None = None) -> np.ndarray:
+    """(k,) bool: which hits of straight-down rays count for the overhead ground truth.
+
+    Dropped: envelope surfaces other than floors, floor hits closer than
+    ``floor_clearance`` to the camera, and instances of the ``truth_excluded`` classes.
+    """
+    config = config or OverheadConfig()
+    category, envelope = instance_labels(house)
+    floor = category == FLOOR
+    excluded = _class_mask(house, config.truth_excluded)
+    inst = np.asarray(hits.instance, dtype=np.int64)
+    keep = ~excluded[inst] & (~envelope[inst] | floor[inst])
+    keep &= ~(floor[inst] & (np.asarray(hits.t) < config.floor_clearance))
+    return keep
+
+
+def overhead_truth(
+    house: "House", camera: OverheadCamera, tracer, config: OverheadConfig | None = None
+) -> OverheadTruth:
+    """Trace straight down from ``camera`` and build the overhead layers and height map.
+
+    tracer : a :class:`sceneforge.raytrace.HouseTracer` of ``house``
+    """
+    config = config or OverheadConfig()
+    origins, directions, depth_scale = camera.rays()
+    hits = tracer.all_hits(origins, directions)
+    category, envelope = instance_labels(house)
+    layers = layers_from_hits(hits, depth_scale, category, envelope, (camera.height, camera.width),
+                              keep=overhead_keep(house, hits, config))
+    top = float(camera.cam_to_world[1, 3])
+    height = (top - layers.depth[0].astype(np.float64) - camera.floor_y).astype(np.float32)
+    first = np.isfinite(layers.depth[0])
+    category = np.where(first, layers.category[0], layers.category[2]).astype(np.uint8)
+    return OverheadTruth(layers, height, category, camera.floor_y)
+
+
+# ---------------------------------------------------------------------------- plot
+
+
+def plot_candidates(points: FrontalPoints, camera: OverheadCamera) -> "matplotlib.figure.Figure":
+    """Top view of a frontal view's points with the three candidate boxes and the chosen one.
+
+    Needs matplotlib (``pip install sceneforge[plot]``); uses the Agg backend.
+    """
+    try:
+        from matplotlib.figure import Figure
+        from matplotlib.patches import Rectangle
+    except ImportError as e:
+        raise MissingDependencyError("matplotlib", "plotting", "pip install sceneforge[plot]") from e
+
+    fig = Figure(figsize=(6, 6))
+    ax = fig.add_subplot()
+    ax.scatter(points.objects[:, 0], points.objects[:, 2], s=1, c="tab:blue", label="D1–D4")
+    ax.scatter([0], [0], marker="^", c="k", label="camera")
+    colours = ("tab:orange", "tab:green", "tab:purple")
+    for cand, colour in zip(camera.candidates, colours):
+        if cand.box is None:
+            continue
+        style = "-" if cand.weight > 0 else ":"
+        ax.add_patch(Rectangle(cand.box.lo, *(cand.box.hi - cand.box.lo), fill=False,
+                               ec=colour, ls=style, label=f"{cand.name} (w={cand.weight:g})"))
+    b = camera.box
+    ax.add_patch(Rectangle(b.lo, *(b.hi - b.lo), fill=False, ec="k", lw=2, label="overhead"))
+    ax.set_xlabel("right (m)")
+    ax.set_ylabel("forward (m)")
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.legend(loc="best", fontsize="small")
+    return fig

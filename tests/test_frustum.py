@@ -1,0 +1,257 @@
+"""Frustum planes, triangle clipping and the ground-truth mesh of a view (SPEC §5)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sceneforge.cameras import look_at_camera
+from sceneforge.conventions import tol
+from sceneforge.frustum import (
+    ViewMeshConfig,
+    clip_triangles,
+    clip_triangles_by_plane,
+    frustum_planes,
+    triangle_areas,
+    view_mesh,
+    weld,
+)
+from sceneforge.houses import House, Room, make_instance
+from sceneforge.layers import Layers, frontal_layers
+from sceneforge.raytrace import HouseTracer
+
+from .conftest import box_instance
+
+# Plane z >= 0 (unit normal +Z pointing inside).
+Z_PLANE = np.array([0.0, 0.0, 1.0, 0.0])
+
+
+def normals(tris):
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def test_triangle_with_one_vertex_inside_keeps_its_tip():
+    # Apex at z = 2, base at z = -2 and 4 m wide: the part at z >= 0 is a triangle with a
+    # 2 m base (x in [-1, 1]) and 2 m height, area 2 of the original 8.
+    tri = np.array([[[0, 0, 2], [2, 0, -2], [-2, 0, -2]]], dtype=float)
+    kept, src = clip_triangles_by_plane(tri, Z_PLANE)
+    cut, _ = clip_triangles_by_plane(tri, -Z_PLANE)
+    assert len(kept) == 1 and src.tolist() == [0]
+    assert triangle_areas(kept).sum() == pytest.approx(2.0)
+    assert triangle_areas(cut).sum() == pytest.approx(6.0)
+    assert len(cut) == 2  # the cut-away quad is split into two triangles
+    assert triangle_areas(kept).sum() + triangle_areas(cut).sum() == pytest.approx(8.0)
+    assert (kept[..., 2] >= -tol.clip).all()
+    assert (cut[..., 2] <= tol.clip).all()
+    np.testing.assert_allclose(sorted(kept[0, :, 0]), [-1, 0, 1])
+    # Winding (and so the facing direction) is kept.
+    np.testing.assert_allclose(normals(kept), normals(tri))
+    np.testing.assert_allclose(normals(cut), np.repeat(normals(tri), 2, axis=0))
+
+
+def test_triangle_with_two_vertices_inside_becomes_a_quad():
+    # Right triangle (0,0)-(4,0)-(0,4) in x/z, cut at z <= 1 (plane z' = 1 - z >= 0):
+    # kept trapezoid = 8 - area of the tip (3×3/2 = 4.5) = 3.5.
+    tri = np.array([[[0, 0, 0], [4, 0, 0], [0, 0, 4]]], dtype=float)
+    plane = np.array([0.0, 0.0, -1.0, 1.0])
+    kept, src = clip_triangles_by_plane(tri, plane)
+    cut, _ = clip_triangles_by_plane(tri, -plane)
+    assert len(kept) == 2 and src.tolist() == [0, 0]
+    assert triangle_areas(kept).sum() == pytest.approx(3.5)
+    assert triangle_areas(cut).sum() == pytest.approx(4.5)
+    assert (kept[..., 2] <= 1 + tol.clip).all()
+    np.testing.assert_allclose(normals(kept), np.repeat(normals(tri), 2, axis=0))
+
+
+def test_whole_triangles_are_kept_or_dropped_and_the_tolerance_prevents_slivers():
+    inside = [[0, 0, 1], [1, 0, 1], [0, 1, 2]]
+    outside = [[0, 0, -1], [1, 0, -1], [0, 1, -2]]
+    # One vertex only half a tolerance behind the plane: counts as inside, not cut.
+    grazing = [[0, 0, -0.5 * tol.clip], [1, 0, 1], [0, 1, 1]]
+    tris = np.array([inside, outside, grazing], dtype=float)
+    kept, src = clip_triangles_by_plane(tris, Z_PLANE)
+    assert src.tolist() == [0, 2]
+    np.testing.assert_array_equal(kept, tris[[0, 2]])
+
+
+def test_triangle_touching_the_plane_from_outside_is_dropped():
+    # One vertex on the plane, two outside: the inside part has no area.
+    tri = np.array([[[0, 0, 0], [1, 0, -1], [-1, 0, -1]]], dtype=float)
+    kept, src = clip_triangles_by_plane(tri, Z_PLANE)
+    assert len(kept) == 0 and len(src) == 0
+
+
+def test_shared_edges_are_cut_at_the_same_point_and_weld():
+    # Square [0,2]² (x, z) as two triangles, clipped at x <= 1: rectangle of area 2 whose
+    # corners plus the diagonal's cut point (1, 1) are 5 distinct vertices.
+    v = np.array([[0, 0, 0], [2, 0, 0], [2, 0, 2], [0, 0, 2]], dtype=float)
+    tris = v[[[0, 1, 2], [0, 2, 3]]]
+    kept, src = clip_triangles_by_plane(tris, np.array([-1.0, 0, 0, 1.0]))
+    vertices, faces = weld(kept)
+    assert triangle_areas(vertices[faces]).sum() == pytest.approx(2.0)
+    assert len(vertices) == 5
+    assert faces.dtype == np.int32
+    assert sorted(set(src.tolist())) == [0, 1]
+
+
+def test_clipping_against_several_planes_keeps_their_intersection():
+    # A 4×4 square clipped to the slab |x| <= 1, |z| <= 0.5 leaves a 2×1 rectangle.
+    v = np.array([[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2]], dtype=float)
+    tris = v[[[0, 1, 2], [0, 2, 3]]]
+    planes = np.array([[1, 0, 0, 1], [-1, 0, 0, 1], [0, 0, 1, 0.5], [0, 0, -1, 0.5]], dtype=float)
+    kept, src = clip_triangles(tris, planes)
+    assert triangle_areas(kept).sum() == pytest.approx(2.0)
+    assert (np.abs(kept[..., 0]) <= 1 + tol.clip).all()
+    assert (np.abs(kept[..., 2]) <= 0.5 + tol.clip).all()
+    assert set(src.tolist()) == {0, 1}
+
+
+def test_random_triangles_area_is_conserved_across_a_plane():
+    rng = np.random.default_rng(0)
+    tris = rng.uniform(-1, 1, size=(200, 3, 3))
+    plane = np.array([0.3, -0.5, 0.8, 0.1])
+    plane[:3] /= np.linalg.norm(plane[:3])
+    kept, _ = clip_triangles_by_plane(tris, plane)
+    cut, _ = clip_triangles_by_plane(tris, -plane)
+    total = triangle_areas(kept).sum() + triangle_areas(cut).sum()
+    assert total == pytest.approx(triangle_areas(tris).sum(), rel=1e-9)
+    assert (kept.reshape(-1, 3) @ plane[:3] + plane[3] >= -tol.clip).all()
+
+
+# --------------------------------------------------------------------- with a camera
+
+# 40×30 pixels, fx = fy = 50, principal point at the centre: at depth z the view covers
+# 40 z / 50 = 0.8 z m across and 30 z / 50 = 0.6 z m down.
+K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+
+
+def camera_looking_down_minus_z(height=1.0):
+    return look_at_camera((0.0, height, 0.0), (0.0, 0.0, -1.0), K=K, width=40, height=30)
+
+
+def quad(x0, x1, y0, y1, z):
+    """Two triangles of an axis-aligned rectangle at world z, facing +Z."""
+    v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=float)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_frustum_planes_cut_a_large_quad_to_the_image_footprint():
+    cam = camera_looking_down_minus_z()
+    planes = frustum_planes(cam, near=0.01)
+    assert planes.shape == (5, 4)
+    np.testing.assert_allclose(np.linalg.norm(planes[:, :3], axis=1), 1.0)
+    # The camera centre is on the four side planes and 1 cm behind the near plane.
+    centre = np.array([0.0, 1.0, 0.0])
+    np.testing.assert_allclose(planes[:4, :3] @ centre + planes[:4, 3], 0.0, atol=1e-12)
+    assert planes[4, :3] @ centre + planes[4, 3] == pytest.approx(-0.01)
+    v, f = quad(-10, 10, -10, 10, -2.0)
+    kept, _ = clip_triangles(v[f], planes)
+    # At depth 2: 1.6 m × 1.2 m, centred on the camera axis (x = 0, y = 1).
+    assert triangle_areas(kept).sum() == pytest.approx(1.6 * 1.2)
+    np.testing.assert_allclose(kept[..., 0].min(), -0.8)
+    np.testing.assert_allclose(kept[..., 0].max(), 0.8)
+    np.testing.assert_allclose(kept[..., 1].min(), 1.0 - 0.6)
+    np.testing.assert_allclose(kept[..., 1].max(), 1.0 + 0.6)
+    uv, z = cam.project(kept.reshape(-1, 3))
+    assert (uv >= -1e-6).all() and (uv[:, 0] <= 40 + 1e-6).all() and (uv[:, 1] <= 30 + 1e-6).all()
+
+
+def test_near_plane_cuts_what_reaches_behind_the_camera():
+    cam = camera_looking_down_minus_z()
+    planes = frustum_planes(cam, near=0.5)
+    # A horizontal strip through the camera height from z = +1 (behind) to z = -1.
+    v = np.array([[-0.01, 1.0, 1.0], [0.01, 1.0, 1.0], [0.01, 1.0, -1.0], [-0.01, 1.0, -1.0]])
+    kept, _ = clip_triangles(v[[[0, 1, 2], [0, 2, 3]]], planes)
+    assert kept[..., 2].max() == pytest.approx(-0.5)
+    assert triangle_areas(kept).sum() == pytest.approx(0.02 * 0.5)
+
+
+def layers_like(d5, object_ids):
+    """Stand-in frontal layers: D5 (H, W) and the object instance ids that fill a layer."""
+    h, w = d5.shape
+    instance = np.full((2, h, w), -1, dtype=np.int32)
+    instance[0].flat[: len(object_ids)] = object_ids
+    depth = np.full((5, h, w), np.nan, dtype=np.float32)
+    depth[4] = d5
+    return Layers(depth=depth, category=np.zeros((3, h, w), np.uint8), instance=instance,
+                  normal=np.full((3, h, w), np.nan, np.float32))
+
+
+def wall_house():
+    """Camera at (0, 1, 0) looking at a wall 3 m ahead; a box in front of it, a box, a
+    panel 5 cm and a second wall 3 m behind it."""
+    h = House(id="walls", instances=[], rooms=[Room("r0", "room", 0)])
+    for name, (v, f) in [("wall", quad(-5, 5, -5, 5, -3.0)), ("panel", quad(-0.1, 0.1, 0.9, 1.1, -3.05)),
+                         ("far_wall", quad(-9, 9, -9, 9, -6.0))]:
+        make_instance(h, name=name, category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    box_instance(h, "front", 29, (0.4, 0.4, 0.4), (0.0, 1.0, -2.0))
+    box_instance(h, "hidden", 29, (0.4, 0.4, 0.4), (0.0, 1.0, -4.5))
+    return h
+
+
+def test_view_mesh_keeps_layer_objects_and_the_envelope_in_front_of_d5():
+    house = wall_house()
+    cam = camera_looking_down_minus_z()
+    layers = frontal_layers(house, cam, HouseTracer(house))
+    np.testing.assert_allclose(layers.depth[4], 3.0, rtol=1e-6)
+    mesh = view_mesh(house, cam, layers)
+    # Objects: only the visible box, whole (6 faces of 0.4 × 0.4 m).
+    assert set(mesh.objects.instance.tolist()) == {3}
+    assert mesh.objects.area == pytest.approx(6 * 0.16)
+    # Envelope: the wall cut to the 2.4 × 1.8 m footprint at depth 3, plus the panel only
+    # 5 cm behind it; the far wall is 3 m behind D5 and goes.
+    assert set(mesh.envelope.instance.tolist()) == {0, 1}
+    assert mesh.envelope.area == pytest.approx(2.4 * 1.8 + 0.2 * 0.2)
+    assert mesh.envelope.faces.dtype == np.int32 and mesh.envelope.vertices.dtype == np.float64
+    assert len(mesh.envelope.faces) == len(mesh.envelope.instance)
+
+
+def test_view_mesh_drops_objects_behind_d5_and_keeps_faces_where_d5_is_nan():
+    house = wall_house()
+    cam = camera_looking_down_minus_z()
+    # Pretend the hidden box filled a layer: it is 2.3 m behind D5 = 3 and goes.
+    mesh = view_mesh(house, cam, layers_like(np.full((30, 40), 3.0, np.float32), [3, 4]))
+    assert set(mesh.objects.instance.tolist()) == {3}
+    # Where D5 is NaN the ray left the house: nothing is behind the envelope there.
+    mesh = view_mesh(house, cam, layers_like(np.full((30, 40), np.nan, np.float32), [3, 4]))
+    assert set(mesh.objects.instance.tolist()) == {3, 4}
+    assert mesh.objects.area == pytest.approx(2 * 6 * 0.16)
+    # The far wall at depth 6 now stays, cut to its 4.8 × 3.6 m footprint.
+    assert mesh.envelope.area == pytest.approx(2.4 * 1.8 + 0.2 * 0.2 + 4.8 * 3.6)
+
+
+def test_view_mesh_rejects_layers_of_another_size():
+    house = wall_house()
+    with pytest.raises(ValueError, match="40×30"):
+        view_mesh(house, camera_looking_down_minus_z(), layers_like(np.ones((10, 10)), []))
+
+
+def test_faces_half_hidden_behind_the_envelope_keep_their_visible_part():
+    # A wall 2 m ahead covers the left half of the view (x < 0); the wall 3 m ahead is
+    # seen only for x in [0, 1.2] (1.8 m high): 2.16 m².
+    h = House(id="occluded", instances=[], rooms=[Room("r0", "room", 0)])
+    for name, (v, f) in [("near", quad(-5, 0, -5, 5, -2.0)), ("back", quad(-5, 5, -5, 5, -3.0))]:
+        make_instance(h, name=name, category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    cam = camera_looking_down_minus_z()
+    layers = frontal_layers(h, cam, HouseTracer(h))
+    fine = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=1.0)).envelope
+    back = fine.instance == 1
+    kept = fine.vertices[fine.faces[back]]
+    # Pieces are kept whole or dropped: at most a one-pixel strip (0.06 m at 3 m) is lost.
+    area = triangle_areas(kept).sum()
+    assert 2.16 - 0.06 * 1.8 <= area <= 2.16 + 1e-9
+    assert kept[..., 0].min() >= -1e-9
+    # The near wall is wholly visible: 0.8 (left half of 1.6) × 1.2 m at depth 2.
+    assert triangle_areas(fine.vertices[fine.faces[~back]]).sum() == pytest.approx(0.8 * 1.2)
+    # Dropping whole faces (the reference rule) loses more of the back wall.
+    coarse = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=None)).envelope
+    coarse_back = triangle_areas(coarse.vertices[coarse.faces[coarse.instance == 1]]).sum()
+    assert coarse_back < area - 0.1
+
+
+def test_view_mesh_config_is_checked():
+    with pytest.raises(ValueError, match="near"):
+        ViewMeshConfig(near=0.0)
+    with pytest.raises(ValueError, match="max_edge_pixels"):
+        ViewMeshConfig(max_edge_pixels=0.0)

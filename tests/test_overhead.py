@@ -1,0 +1,331 @@
+"""The overhead camera (SPEC §6) and overhead ground truth (SPEC §7).
+
+Expected boxes are worked out by hand from the SPEC formulas in the comments.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sceneforge.cameras import look_at_camera
+from sceneforge.cli.main import cli
+from sceneforge.errors import SceneforgeError
+from sceneforge.houses import House, Room
+from sceneforge.houses.native import write_house
+from sceneforge.layers import frontal_layers
+from sceneforge.overhead import (
+    Box,
+    Candidate,
+    FrontalPoints,
+    GravityFrame,
+    OverheadCamera,
+    OverheadConfig,
+    combine,
+    depth_statistics_box,
+    envelope_frustum_box,
+    gravity_frame,
+    majority_room_box,
+    overhead_camera,
+    overhead_truth,
+    place_overhead_camera,
+)
+from sceneforge.raytrace import HouseTracer
+
+from .conftest import box_instance
+
+CONFIG = OverheadConfig()
+
+
+def frame_looking_down_minus_z(height=1.5):
+    """Camera at (0, height, 0) looking along −Z: right = +X, forward = −Z."""
+    return GravityFrame(origin=np.array([0.0, height, 0.0]), right=np.array([1.0, 0.0, 0.0]),
+                        forward=np.array([0.0, 0.0, -1.0]), theta=1.3734)
+
+
+def points_at(*groups):
+    """(n, 3) frame points ``(right, up, forward)`` from (count, right, forward) groups."""
+    return np.concatenate([np.tile([r, 0.0, f], (n, 1)) for n, r, f in groups])
+
+
+def hand_view():
+    """20 points at (right 0, forward 3), 20 at (2, 7), all in room r0; 10 D5 points at z = 5."""
+    objects = points_at((20, 0.0, 3.0), (20, 2.0, 7.0))
+    return FrontalPoints(
+        objects=objects,
+        object_room=np.array(["r0"] * 40, dtype=object),
+        object_excluded=np.zeros(40, dtype=bool),
+        envelope_z=np.full(10, 5.0),
+        voter_rooms=np.array(["r0"] * 30, dtype=object),
+        top=1.2,
+    )
+
+
+def test_overhead_camera_of_hand_made_points_is_the_hand_computed_weighted_box():
+    cam = place_overhead_camera(frame_looking_down_minus_z(), hand_view(), tan_half_fov=0.5,
+                                floor_y=0.0)
+    # 1. depth statistics: mean (1, 5), std (1, 2) → half (1.5, 3):
+    #    right [-0.5, 2.5], forward [2, 8]
+    # 2. envelope: d = 0.8 × 5 = 4, half = 0.9 × 0.5 × 4 = 1.8 around (0, 4):
+    #    right [-1.8, 1.8], forward [2.2, 5.8]
+    # 3. room r0: bbox right [0, 2], forward [3, 7]; half (1, 2) × 1.05 around (1, 5):
+    #    right [-0.05, 2.05], forward [2.9, 7.1]
+    boxes = {c.name: c for c in cam.candidates}
+    np.testing.assert_allclose(boxes["depth_statistics"].box.lo, [-0.5, 2.0])
+    np.testing.assert_allclose(boxes["depth_statistics"].box.hi, [2.5, 8.0])
+    np.testing.assert_allclose(boxes["envelope_frustum"].box.lo, [-1.8, 2.2])
+    np.testing.assert_allclose(boxes["envelope_frustum"].box.hi, [1.8, 5.8])
+    np.testing.assert_allclose(boxes["majority_room"].box.lo, [-0.05, 2.9])
+    np.testing.assert_allclose(boxes["majority_room"].box.hi, [2.05, 7.1])
+    assert [c.weight for c in cam.candidates] == [1.0, 1.0, 2.0]
+    assert all(c.reason is None for c in cam.candidates)
+    # Weighted (1, 1, 2): right (-0.5 - 1.8 - 0.1)/4 = -0.6 .. (2.5 + 1.8 + 4.1)/4 = 2.1,
+    # forward (2 + 2.2 + 5.8)/4 = 2.5 .. (8 + 5.8 + 14.2)/4 = 7. Centre (0.75, 4.75),
+    # half sizes (1.35, 2.25) → square of half-size 2.25.
+    np.testing.assert_allclose(cam.box.lo, [0.75 - 2.25, 2.5])
+    np.testing.assert_allclose(cam.box.hi, [0.75 + 2.25, 7.0])
+    assert cam.half_extent == pytest.approx(2.25)
+    # Height: camera y 1.5 + top 1.2 - 0.05 = 2.65 above a floor at 0.
+    tx, ty, tz, theta, sigma = cam.params
+    assert (tx, ty, tz) == pytest.approx((0.75, 4.75, 2.65))
+    assert theta == pytest.approx(1.3734)
+    assert sigma == pytest.approx(2.25 * np.sqrt(2))
+    np.testing.assert_allclose(cam.cam_to_world[:3, 3], [0.75, 2.65, -4.75])
+    # OpenCV axes: x = right, y (image down) = −forward = +Z, z = straight down.
+    np.testing.assert_allclose(cam.cam_to_world[:3, :3], [[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    assert np.linalg.det(cam.cam_to_world[:3, :3]) == pytest.approx(1.0)
+
+
+def test_overhead_camera_rays_are_parallel_through_pixel_centres():
+    cam = place_overhead_camera(frame_looking_down_minus_z(), hand_view(), tan_half_fov=0.5,
+                                floor_y=0.0, config=OverheadConfig(resolution=4))
+    origins, directions, scale = cam.rays()
+    assert origins.shape == (16, 3) and directions.shape == (16, 3)
+    np.testing.assert_array_equal(directions, np.tile([0.0, -1.0, 0.0], (16, 1)))
+    np.testing.assert_array_equal(scale, 1.0)
+    # Pixel (row 0, col 0) is the far-left corner: half a pixel (2 × 2.25 / 4 / 2) in from
+    # the square's right = -1.5 and forward = 7 edges; forward = -Z in the world.
+    pix = 2 * 2.25 / 4
+    np.testing.assert_allclose(origins[0], [-1.5 + pix / 2, 2.65, -(7.0 - pix / 2)])
+    # Row-major: pixel 1 is one step right, pixel 4 one step back towards the camera.
+    np.testing.assert_allclose(origins[1] - origins[0], [pix, 0, 0])
+    np.testing.assert_allclose(origins[4] - origins[0], [0, 0, pix])
+    uv, z = cam.project(origins - [0.0, 1.0, 0.0])
+    np.testing.assert_allclose(uv[[0, 1, 4]], [[0.5, 0.5], [1.5, 0.5], [0.5, 1.5]])
+    np.testing.assert_allclose(z, 1.0)
+
+
+def test_depth_statistics_needs_40_points():
+    few = depth_statistics_box(points_at((39, 0.0, 3.0)), CONFIG)
+    assert few.box is None and few.weight == 0 and "39" in few.reason
+    enough = depth_statistics_box(points_at((40, 0.0, 3.0)), CONFIG)
+    assert enough.box is not None and enough.reason is None
+
+
+def test_depth_statistics_half_size_is_at_least_half_a_metre_and_centre_within_9m():
+    # All points at one spot: std 0 → half-size 0.5; at forward 12 the centre moves to 9.
+    c = depth_statistics_box(points_at((40, 0.0, 12.0)), CONFIG)
+    np.testing.assert_allclose(c.box.lo, [-0.5, 8.5])
+    np.testing.assert_allclose(c.box.hi, [0.5, 9.5])
+
+
+def test_envelope_box_distance_rules():
+    # Fewer than 10 D5 points: d = 4 whatever their depth; half = 0.9 × 1 × 4 = 3.6.
+    c = envelope_frustum_box(np.full(9, 100.0), 1.0, CONFIG)
+    np.testing.assert_allclose(c.box.lo, [-3.6, 0.4])
+    np.testing.assert_allclose(c.box.hi, [3.6, 7.6])
+    # 0.8 × 20 = 16 → clamped to 7; 0.8 × 0.5 = 0.4 → clamped to 1.
+    far = envelope_frustum_box(np.full(10, 20.0), 1.0, CONFIG)
+    near = envelope_frustum_box(np.full(10, 0.5), 1.0, CONFIG)
+    assert far.box.center[1] == pytest.approx(7.0)
+    assert near.box.center[1] == pytest.approx(1.0)
+    assert near.box.half_size == pytest.approx([0.9, 0.9])
+
+
+def test_candidates_under_half_a_square_metre_get_weight_zero():
+    # tan = 0.05, d = 4: half = 0.18, area 0.36² = 0.1296 m² < 0.5.
+    small = envelope_frustum_box(np.full(10, 5.0), 0.05, CONFIG)
+    stats = depth_statistics_box(points_at((20, 0.0, 3.0), (20, 2.0, 7.0)), CONFIG)
+    missing = Candidate("majority_room", None, 0.0, "no votes")
+    weighted, box = combine((stats, small, missing), CONFIG)
+    assert [c.weight for c in weighted] == [1.0, 0.0, 0.0]
+    assert "0.130 m²" in weighted[1].reason
+    np.testing.assert_allclose(box.lo, stats.box.lo)
+    np.testing.assert_allclose(box.hi, stats.box.hi)
+
+
+def test_no_usable_candidate_is_an_error():
+    small = envelope_frustum_box(np.full(10, 5.0), 0.05, CONFIG)
+    none = Candidate("x", None, 0.0, "too few")
+    with pytest.raises(SceneforgeError, match="no overhead box candidate"):
+        combine((none, small, none), CONFIG)
+
+
+def room_inputs(votes, rooms, excluded=None, groups=((20, 0.0, 3.0),)):
+    objects = points_at(*groups)
+    return dict(
+        objects=objects,
+        object_room=np.array(rooms, dtype=object),
+        object_excluded=np.zeros(len(objects), bool) if excluded is None else np.array(excluded),
+        voter_rooms=np.array(votes, dtype=object),
+    )
+
+
+def test_majority_room_needs_20_votes_and_15_points():
+    rooms = ["r0"] * 20
+    few_votes = majority_room_box(**room_inputs(["r0"] * 19 + [None] * 50, rooms), config=CONFIG)
+    assert few_votes.box is None and "19 room votes" in few_votes.reason
+    ok = majority_room_box(**room_inputs(["r0"] * 20, rooms), config=CONFIG)
+    assert ok.box is not None
+    # 6 of the 20 points are of an excluded class: 14 < 15.
+    excluded = [True] * 6 + [False] * 14
+    few_points = majority_room_box(**room_inputs(["r0"] * 20, rooms, excluded), config=CONFIG)
+    assert few_points.box is None and "14 points" in few_points.reason
+
+
+def test_majority_room_uses_only_the_winning_room_and_the_distance_band():
+    # r1 wins 15 votes to 10; its points are at forward 3 and 4 (right 0 and 1); r0's
+    # points and r1's points closer than 1.5 m or further than 9 m do not count.
+    groups = ((10, 0.0, 3.0), (10, 1.0, 4.0), (10, 5.0, 5.0), (5, 0.0, 1.0), (5, 0.0, 9.5))
+    rooms = ["r1"] * 20 + ["r0"] * 10 + ["r1"] * 10
+    c = majority_room_box(**room_inputs(["r1"] * 15 + ["r0"] * 10, rooms, groups=groups),
+                          config=CONFIG)
+    assert c.n_points == 20
+    # bbox right [0, 1], forward [3, 4]; half 0.5 × 1.05 = 0.525 around (0.5, 3.5).
+    np.testing.assert_allclose(c.box.lo, [0.5 - 0.525, 3.5 - 0.525])
+    np.testing.assert_allclose(c.box.hi, [0.5 + 0.525, 3.5 + 0.525])
+
+
+def test_box_square_pads_the_short_side():
+    sq = Box(np.array([0.0, 1.0]), np.array([4.0, 2.0])).square()
+    np.testing.assert_allclose(sq.lo, [0.0, -0.5])
+    np.testing.assert_allclose(sq.hi, [4.0, 3.5])
+
+
+# ------------------------------------------------------------ with a house and a tracer
+
+DOWN_PITCH = (0.0, -0.2, -1.0)  # PBRS pitch: tan = 0.2, looking along −Z
+
+
+def test_theta_of_the_default_pitch():
+    frame = gravity_frame(look_at_camera((0, 1.5, 0), DOWN_PITCH))
+    assert frame.theta == pytest.approx(1.3734, abs=5e-5)
+    np.testing.assert_allclose(frame.forward, [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(frame.right, [1, 0, 0], atol=1e-12)
+
+
+def test_gravity_frame_right_is_the_camera_x_axis_for_any_yaw():
+    cam = look_at_camera((1, 1.5, 2), (np.sin(0.7), -0.2, np.cos(0.7)))
+    frame = gravity_frame(cam)
+    np.testing.assert_allclose(frame.right, cam.cam_to_world[:3, 0], atol=1e-12)
+    np.testing.assert_allclose(frame.forward, [np.sin(0.7), 0, np.cos(0.7)], atol=1e-12)
+    p = np.array([[3.0, 0.5, -1.0]])
+    np.testing.assert_allclose(frame.to_world(frame.to_frame(p)), p)
+
+
+def test_camera_looking_straight_down_has_no_gravity_frame():
+    with pytest.raises(SceneforgeError, match="straight up or down"):
+        gravity_frame(look_at_camera((0, 1.5, 0), (0, -1, 0), up=(0, 0, -1)))
+
+
+def room_with_a_box():
+    """6 × 2.5 × 6 m room around the origin; a 1 × 0.8 × 1 m box at (0, 0.4, -1.5), a
+    chandelier-labelled lamp hanging over it. Floor top at y = 0."""
+    h = House(id="box_room", instances=[], rooms=[Room("r0", "living", 0)])
+    box_instance(h, "floor", 2, (6, 0.1, 6), (0, -0.05, 0))
+    box_instance(h, "ceiling", 22, (6, 0.1, 6), (0, 2.55, 0))
+    for i, (ext, c) in enumerate([((0.1, 2.5, 6), (-3.05, 1.25, 0)), ((0.1, 2.5, 6), (3.05, 1.25, 0)),
+                                  ((6, 2.5, 0.1), (0, 1.25, -3.05)), ((6, 2.5, 0.1), (0, 1.25, 3.05))]):
+        box_instance(h, f"wall{i}", 1, ext, c)
+    box_instance(h, "box", 29, (1.0, 0.8, 1.0), (0, 0.4, -1.5))
+    box_instance(h, "lamp", 35, (0.2, 0.1, 0.2), (0.0, 1.3, -1.5), label="chandelier")
+    return h
+
+
+def test_box_height_map_is_its_height_above_the_floor_and_nan_on_bare_floor():
+    house = room_with_a_box()
+    tracer = HouseTracer(house)
+    camera = look_at_camera((0, 1.5, 2.0), DOWN_PITCH, width=80, height=60)
+    layers = frontal_layers(house, camera, tracer)
+    over = overhead_camera(house, camera, layers, OverheadConfig(resolution=64))
+    # The floor seen in the frontal D5 (float32 depths) is the floor top, y = 0.
+    assert over.floor_y == pytest.approx(0.0, abs=1e-5)
+    assert over.params[2] == pytest.approx(over.cam_to_world[1, 3] - over.floor_y)
+    truth = overhead_truth(house, over, tracer, OverheadConfig(resolution=64))
+    assert truth.height.shape == (64, 64) and truth.height.dtype == np.float32
+
+    origins, _, _ = over.rays()
+    x, z = origins[:, 0].reshape(64, 64), origins[:, 2].reshape(64, 64)
+    pixel = 2 * over.half_extent / 64
+    on_box = (np.abs(x) < 0.5 - pixel) & (np.abs(z + 1.5) < 0.5 - pixel)
+    in_room = (np.abs(x) < 3 - pixel) & (np.abs(z) < 3 - pixel)
+    bare = in_room & ~((np.abs(x) < 0.5 + pixel) & (np.abs(z + 1.5) < 0.5 + pixel))
+    assert on_box.sum() > 50 and bare.sum() > 500
+    # The chandelier above the box is ignored: the box top is 0.8 m above the floor.
+    np.testing.assert_allclose(truth.height[on_box], 0.8, atol=1e-5)
+    assert (truth.category[on_box] == 29).all()
+    assert np.isnan(truth.height[bare]).all()
+    assert (truth.category[bare] == 2).all()
+    # D5 is the floor (walls and ceiling are ignored), D1..D2 the box top and bottom.
+    np.testing.assert_allclose(truth.layers.depth[4][bare], over.params[2], atol=1e-5)
+    np.testing.assert_allclose(truth.layers.depth[0][on_box], over.params[2] - 0.8, atol=1e-5)
+    np.testing.assert_allclose(truth.layers.depth[1][on_box], over.params[2], atol=1e-5)
+    # The height map is tz minus the first overhead depth wherever an object is hit.
+    hit = np.isfinite(truth.height)
+    np.testing.assert_allclose(truth.height[hit], over.params[2] - truth.layers.depth[0][hit],
+                               atol=1e-5)
+
+
+def overhead_at(height, resolution=16):
+    """Hand-made overhead camera over (0, height, -1.5), 2 × 2 m, right = +X, forward = −Z."""
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    pose[:3, 3] = (0.0, height, -1.5)
+    return OverheadCamera(pose, 1.0, resolution, np.zeros(5), 0.0,
+                          Box(np.array([-1.0, 0.5]), np.array([1.0, 2.5])))
+
+
+def test_floor_hits_within_half_a_metre_of_the_camera_are_ignored():
+    house = room_with_a_box()
+    tracer = HouseTracer(house)
+    # 0.9 m above the floor: the box top is 0.1 m below, the floor 0.9 m: both count.
+    high = overhead_truth(house, overhead_at(0.9), tracer)
+    assert np.isfinite(high.layers.depth[4]).all()
+    np.testing.assert_allclose(high.layers.depth[4], 0.9, atol=1e-6)
+    # 0.35 m above the floor: inside the box, whose underside 0.35 m below still counts,
+    # but both faces of the 0.1 m floor slab are closer than 0.5 m and are ignored.
+    low = overhead_truth(house, overhead_at(0.35), tracer)
+    assert np.isnan(low.layers.depth[4]).all()
+    assert (low.layers.category[2] == 0).all()
+    inside = np.isfinite(low.layers.depth[0])
+    assert inside.any() and (low.layers.instance[0][inside] == 6).all()
+    np.testing.assert_allclose(low.height[inside], 0.0, atol=1e-6)
+
+
+def test_cli_prints_candidates_and_parameters_and_plots(small_house, tmp_path):
+    write_house(small_house, tmp_path / "small")
+    cameras = tmp_path / "cameras.txt"
+    cameras.write_text("0 1.5 1.6  0 -0.2 -1  0 1 0  0.5534 0.4339 0\n"
+                       "0 1.5 1.6  0 -1 0  0 0 -1  0.5534 0.4339 0\n")
+    res = CliRunner().invoke(cli, ["overhead-camera", str(tmp_path / "small"), "--camera-file",
+                                   str(cameras), "--view", "0", "--plot", str(tmp_path / "p.png")])
+    assert res.exit_code == 0, res.output
+    for name in ("depth_statistics", "envelope_frustum", "majority_room", "overhead: tx"):
+        assert name in res.output
+    assert "theta 1.3734" in res.output
+    assert (tmp_path / "p.png").stat().st_size > 1000
+    # The second camera looks straight down: one red line, no traceback.
+    res = CliRunner().invoke(cli, ["overhead-camera", str(tmp_path / "small"), "--camera-file",
+                                   str(cameras), "--view", "1"])
+    assert res.exit_code == 1
+    assert "straight up or down" in res.output and "Traceback" not in res.output
+
+
+def test_overhead_config_is_checked():
+    with pytest.raises(ValueError, match="weights"):
+        OverheadConfig(weights=(1.0, 1.0))
+    with pytest.raises(ValueError, match="resolution"):
+        OverheadConfig(resolution=0)
+    with pytest.raises(ValueError, match="room_distance_range"):
+        OverheadConfig(room_distance_range=(9.0, 1.5))
