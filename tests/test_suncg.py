@@ -13,7 +13,8 @@ from PIL import Image
 
 from sceneforge.errors import HouseError
 from sceneforge.houses import House, Level, LoadOptions, Material, Room, discover, load
-from sceneforge.houses.suncg import CSV_FIELDS, read_obj, write_house
+from sceneforge.houses.suncg import CSV_FIELDS, write_house
+from sceneforge.houses.wavefront import read_obj
 
 from .conftest import box_instance
 

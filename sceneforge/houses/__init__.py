@@ -22,6 +22,7 @@ __all__ = [
 
 #: Names accepted by ``--format``.
 FORMATS = ("sceneforge", "gltf", "obj", "ply", "suncg", "front3d")
+#: file suffix of a generic scene → its format name
 MESH_SUFFIXES = {".gltf": "gltf", ".glb": "gltf", ".obj": "obj", ".ply": "ply"}
 
 

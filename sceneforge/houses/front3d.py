@@ -45,8 +45,9 @@ import numpy as np
 from ..conventions import NYU40_NAMES, is_dropped, nyu40_id
 from ..errors import HouseError, SceneforgeError
 from .categories import data_file, resolve
+from .meshio import Mesh, place, quaternion_matrix, save_texture
 from .model import House, Instance, Material, Room, make_instance
-from .suncg import ObjMesh, place, read_obj, save_texture, write_obj
+from .wavefront import read_obj, write_obj
 
 if TYPE_CHECKING:
     from . import LoadOptions
@@ -91,16 +92,6 @@ def lookup(names) -> tuple[str, int | None, bool]:
     return label, None, is_dropped(0, label)
 
 
-def quaternion_matrix(q) -> np.ndarray:
-    """(3, 3) float64 rotation of the unit quaternion ``q = (x, y, z, w)`` (normalised here)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def _future_dir(path: Path, options: LoadOptions) -> Path:
     if options.future_dir:
         return Path(options.future_dir)
@@ -120,7 +111,7 @@ class _Reader:
         self.textures = path.parent.parent / TEXTURE_DIR
         self.house = House(id=path.stem, instances=[], rooms=[], source_format="front3d",
                            source_path=str(path))
-        self._models: dict[str, ObjMesh | None] = {}
+        self._models: dict[str, Mesh | None] = {}
 
     def error(self, problem: str, file: Path | None = None) -> HouseError:
         return HouseError(self.house.id, file or self.path, problem)
@@ -163,7 +154,7 @@ class _Reader:
         m[:3, 3] = pos
         return m
 
-    def model(self, jid: str) -> ObjMesh | None:
+    def model(self, jid: str) -> Mesh | None:
         """The 3D-FUTURE model ``jid`` (its texture.png as texture), None when missing."""
         if jid not in self._models:
             file = self.future / jid / "raw_model.obj"
@@ -356,8 +347,9 @@ def write_house(house: House, root: str | Path) -> Path:
             name = _source_name(inst, NYU40_NAMES[inst.category])
             lo, hi = inst.vertices.min(0), inst.vertices.max(0)
             origin = np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
-            write_obj(future / jid / "raw_model.obj", inst.vertices - origin, inst.faces, inst.uv,
-                      inst.material, mtl_name="model.mtl", texture_name="texture.png")
+            model = Mesh(inst.vertices - origin, inst.faces, inst.uv, inst.material)
+            write_obj(future / jid / "raw_model.obj", [model], mtl_name="model.mtl",
+                      texture_name="texture.png")
             furniture.append({"uid": uid, "jid": jid, "title": inst.label, "category": name,
                               "size": (hi - lo).tolist(), "valid": True})
             infos.append({"model_id": jid, "category": name, "super-category": NYU40_NAMES[inst.category]})

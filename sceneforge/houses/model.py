@@ -40,7 +40,8 @@ class Instance:
 
     vertices : (n, 3) float64  world coordinates, metres, +Y up
     faces    : (m, 3) int64    counter-clockwise seen from outside (normals out)
-    uv       : (n, 2) float32  texture coordinates, or None
+    uv       : (n, 2) float32  texture coordinates, or None; OpenGL/OBJ convention: (0, 0) is
+               the bottom-left corner of the image, v = 0 its bottom row, v = 1 its top row
     category : NYU40 id (0 = void)
     label    : the source's own category name (e.g. SUNCG fine class), kept for rules
                that NYU40 cannot express (fireplace, chandelier, ...)

@@ -30,19 +30,14 @@ the ``fine_grained_class`` (so the fireplace/person/plant rules of
 :mod:`sceneforge.conventions` apply); persons and plants are dropped. A room's id is its
 ``modelId`` (``fr_0rm_3``, unique in a house), its type the ``roomTypes`` joined by commas,
 its level the level listing it. A level's floor height is the bottom of its ``bbox``.
-
-The OBJ reader and writer and :func:`place` live here and are shared with
-:mod:`sceneforge.houses.front3d`.
+OBJ files are read and written by :mod:`sceneforge.houses.wavefront`.
 """
 
 from __future__ import annotations
 
 import csv
-import io
 import json
 import re
-import shutil
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,7 +47,9 @@ import numpy as np
 from ..conventions import NYU40_IDS, NYU40_NAMES, is_dropped, nyu40_id
 from ..errors import HouseError
 from .categories import resolve
+from .meshio import Mesh, place
 from .model import House, Instance, Level, Material, Room, make_instance
+from .wavefront import read_obj, write_obj
 
 if TYPE_CHECKING:
     from . import LoadOptions
@@ -65,232 +62,6 @@ CSV_FIELDS = (
 )
 #: Room envelope files: file suffix, NYU40 class (also the label) and the flag hiding it.
 ROOM_PARTS = (("f", "floor", "hideFloor"), ("c", "ceiling", "hideCeiling"), ("w", "wall", "hideWalls"))
-
-
-# --------------------------------------------------------------------------------------
-# Wavefront OBJ, shared with the 3D-FRONT module
-# --------------------------------------------------------------------------------------
-
-
-@dataclass
-class ObjMesh:
-    """A triangulated Wavefront OBJ.
-
-    vertices : (n, 3) float64  in file order; a vertex used with a second texture coordinate
-               is duplicated after them
-    faces    : (m, 3) int64    polygons fanned into triangles, in file order
-    uv       : (n, 2) float32  or None when some face corner has no texture coordinate
-    material : the material of most faces (its ``Kd``, ``d`` and ``map_Kd``), or None
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    uv: np.ndarray | None
-    material: Material | None
-
-
-def read_obj(path: Path) -> ObjMesh:
-    """Read an OBJ and the material libraries it names, keeping vertex order.
-
-    trimesh splits a mesh per material and packs their textures into one atlas when it
-    concatenates them, which reorders vertices and rewrites uv; this reader does neither.
-    Raises ``ValueError`` (with the line number) for malformed content, ``OSError`` when
-    the file cannot be read.
-    """
-    verts: list[list[str]] = []
-    tex: list[list[str]] = []
-    corner_v: list[int] = []
-    corner_t: list[int] = []
-    face_mat: list[int] = []
-    mat_names: list[str] = []
-    libs: list[str] = []
-    current = -1
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            parts = line.split()
-            if not parts:
-                continue
-            key = parts[0]
-            try:
-                if key == "v":
-                    verts.append(parts[1:4])
-                elif key == "vt":
-                    tex.append((parts[1:3] + ["0"])[:2])
-                elif key == "f":
-                    if len(parts) < 4:
-                        raise ValueError("face with fewer than 3 corners")
-                    # indices count from 1, negative ones back from the last vertex so far;
-                    # 0 becomes -1 and is caught by the range check below
-                    nv, nt = len(verts), len(tex)
-                    fv, ft = [], []
-                    for p in parts[1:]:
-                        a, _, rest = p.partition("/")
-                        b = rest.partition("/")[0]
-                        i = int(a)
-                        fv.append(i - 1 if i > 0 else nv + i if i else -1)
-                        if b:
-                            j = int(b)
-                            ft.append(j - 1 if j > 0 else nt + j if j else -1)
-                        else:
-                            ft.append(-1)
-                    for k in range(1, len(fv) - 1):
-                        corner_v += (fv[0], fv[k], fv[k + 1])
-                        corner_t += (ft[0], ft[k], ft[k + 1])
-                        face_mat.append(current)
-                elif key == "usemtl":
-                    name = " ".join(parts[1:])
-                    if name not in mat_names:
-                        mat_names.append(name)
-                    current = mat_names.index(name)
-                elif key == "mtllib":
-                    libs.append(" ".join(parts[1:]))
-            except ValueError as e:
-                raise ValueError(f"line {lineno}: {e}") from None
-    if any(len(v) != 3 for v in verts):
-        raise ValueError("a 'v' line has fewer than 3 coordinates")
-    vertices = np.array(verts, dtype=np.float64).reshape(-1, 3)
-    cv = np.array(corner_v, dtype=np.int64)
-    ct = np.array(corner_t, dtype=np.int64)
-    if len(cv) and (cv.min() < 0 or cv.max() >= len(vertices)):
-        raise ValueError(f"a face uses a vertex index outside the {len(vertices)} vertices")
-    uv = None
-    if len(cv) and ct.min() >= 0:
-        if ct.max() >= len(tex):
-            raise ValueError(f"a face uses a texture index outside the {len(tex)} coordinates")
-        vertices, cv, uv = _split_seams(vertices, cv, ct, np.array(tex, dtype=np.float64))
-    material = None
-    if face_mat and max(face_mat) >= 0:
-        counts = np.bincount(np.array(face_mat) + 1)
-        dominant = mat_names[int(np.argmax(counts[1:]))]
-        material = _read_mtl(path.parent, libs).get(dominant)
-    return ObjMesh(vertices, cv.reshape(-1, 3), uv, material)
-
-
-def _split_seams(vertices, cv, ct, tex):
-    """Per-vertex uv: a vertex keeps the texture coordinate of its first use; each further
-    (vertex, texture coordinate) pair becomes a new vertex appended at the end."""
-    key = cv * (len(tex) + 1) + ct
-    uniq, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    order = np.argsort(first, kind="stable")
-    pv, pt = (uniq // (len(tex) + 1))[order], (uniq % (len(tex) + 1))[order]
-    primary = np.zeros(len(pv), dtype=bool)
-    primary[np.unique(pv, return_index=True)[1]] = True
-    new = np.where(primary, pv, 0)
-    new[~primary] = len(vertices) + np.arange((~primary).sum())
-    vertices = np.concatenate([vertices, vertices[pv[~primary]]])
-    uv = np.zeros((len(vertices), 2), dtype=np.float32)
-    uv[new] = tex[pt]
-    pair_index = np.empty(len(uniq), dtype=np.int64)
-    pair_index[order] = new
-    return vertices, pair_index[inverse.reshape(-1)], uv
-
-
-def _read_mtl(folder: Path, libs: list[str]) -> dict[str, Material]:
-    """Materials of the named libraries; a missing library only costs the colours."""
-    fields: dict[str, dict] = {}
-    for lib in libs:
-        try:
-            lines = (folder / lib).read_text(encoding="utf-8", errors="replace").splitlines()
-        except OSError:
-            continue
-        current: dict | None = None
-        for line in lines:
-            parts = line.split()
-            if len(parts) < 2:
-                continue
-            if parts[0] == "newmtl":
-                current = fields.setdefault(" ".join(parts[1:]), {})
-            elif current is not None:
-                try:
-                    if parts[0] == "Kd" and len(parts) >= 4:
-                        current["kd"] = tuple(float(np.clip(float(x), 0, 1)) for x in parts[1:4])
-                    elif parts[0] == "d":
-                        current["alpha"] = float(np.clip(float(parts[1]), 0, 1))
-                    elif parts[0] == "Tr":
-                        current["alpha"] = float(np.clip(1 - float(parts[1]), 0, 1))
-                    elif parts[0] == "map_Kd":
-                        # options (-s, -o, ...) come first: the file name is the last token
-                        candidate = (folder / lib).parent / parts[-1]
-                        current["texture"] = candidate if candidate.is_file() else None
-                except ValueError:
-                    continue
-    return {
-        name: Material(base_color=(*f.get("kd", (0.8, 0.8, 0.8)), f.get("alpha", 1.0)),
-                       texture=f.get("texture"))
-        for name, f in fields.items()
-    }
-
-
-def write_obj(
-    path: Path,
-    vertices,
-    faces,
-    uv=None,
-    material: Material | None = None,
-    *,
-    mtl_name: str | None = None,
-    texture_name: str | None = None,
-) -> Path:
-    """Write a triangle mesh as OBJ, with an MTL (and its texture) when a material is given.
-
-    vertices : (n, 3) float  written with 17 significant digits, so they read back exactly
-    faces    : (m, 3) int    0-based
-    uv       : (n, 2) float  or None
-    mtl_name / texture_name : file names next to the OBJ (default ``<stem>.mtl`` and
-               ``<stem>.png``)
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.StringIO()
-    if material is not None:
-        mtl_name = mtl_name or f"{path.stem}.mtl"
-        buf.write(f"mtllib {mtl_name}\n")
-    np.savetxt(buf, np.asarray(vertices, dtype=np.float64).reshape(-1, 3), fmt="v %.17g %.17g %.17g")
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3) + 1
-    if uv is not None:
-        np.savetxt(buf, np.asarray(uv, dtype=np.float64).reshape(-1, 2), fmt="vt %.9g %.9g")
-    if material is not None:
-        buf.write("usemtl material_0\n")
-    if uv is not None:
-        np.savetxt(buf, np.repeat(f, 2, axis=1), fmt="f %d/%d %d/%d %d/%d")
-    else:
-        np.savetxt(buf, f, fmt="f %d %d %d")
-    path.write_text(buf.getvalue())
-    if material is not None:
-        r, g, b, a = (float(c) for c in material.base_color)
-        lines = ["newmtl material_0", f"Kd {r!r} {g!r} {b!r}", f"d {a!r}"]
-        if material.texture is not None:
-            texture_name = texture_name or f"{path.stem}.png"
-            save_texture(material.texture, path.parent / texture_name)
-            lines.append(f"map_Kd {texture_name}")
-        (path.parent / mtl_name).write_text("\n".join(lines) + "\n")
-    return path
-
-
-def save_texture(texture, dst: Path) -> None:
-    """Write a :class:`Material` texture (an image file path or a PIL image) to ``dst``."""
-    if isinstance(texture, (str, Path)) and Path(texture).suffix.lower() == dst.suffix.lower():
-        if Path(texture).resolve() != dst.resolve():
-            shutil.copyfile(texture, dst)
-        return
-    from PIL import Image
-
-    image = Image.open(texture) if isinstance(texture, (str, Path)) else texture
-    image.save(dst)
-
-
-def place(vertices, faces, matrix) -> tuple[np.ndarray, np.ndarray]:
-    """Apply an affine 4×4 ``matrix`` to a mesh; a mirroring matrix also reverses the winding.
-
-    vertices : (n, 3) float64 → (n, 3) float64
-    faces    : (m, 3) int64   → (m, 3) int64, each triangle reversed when det < 0 so that
-               normals still point outward
-    """
-    m = np.asarray(matrix, dtype=np.float64)
-    v = np.asarray(vertices, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
-    f = np.asarray(faces, dtype=np.int64)
-    if np.linalg.det(m[:3, :3]) < 0:
-        f = f[:, ::-1]
-    return v, f
 
 
 # --------------------------------------------------------------------------------------
@@ -341,7 +112,7 @@ class _Reader:
             raise self.error("a SUNCG house.json lies in <root>/house/<id>/")
         self.root = parents[2]
         self.csv_path = self.root / CATEGORY_CSV
-        self._objs: dict[Path, ObjMesh] = {}
+        self._objs: dict[Path, Mesh] = {}
 
     def error(self, problem: str, file: Path | None = None) -> HouseError:
         return HouseError(self.house.id, file or self.path, problem)
@@ -377,7 +148,7 @@ class _Reader:
         self.room_dir = self.root / "room" / str(doc.get("id") or self.house.id)
         return doc
 
-    def obj(self, file: Path) -> ObjMesh:
+    def obj(self, file: Path) -> Mesh:
         if file not in self._objs:
             try:
                 self._objs[file] = read_obj(file)
@@ -398,7 +169,7 @@ class _Reader:
             m = t.reshape(4, 4).T
         return np.diag([self.scale, self.scale, self.scale, 1.0]) @ m
 
-    def add(self, name, category, label, room_id, mesh: ObjMesh, matrix, file, material=None):
+    def add(self, name, category, label, room_id, mesh: Mesh, matrix, file, material=None):
         v, f = place(mesh.vertices, mesh.faces, matrix)
         make_instance(self.house, name=name, category=category, label=label, room_id=room_id,
                       vertices=v, faces=f, uv=mesh.uv, file=file, material=material or mesh.material)
@@ -437,7 +208,7 @@ class _Reader:
         if dims.shape != (3,) or not (np.isfinite(dims).all() and (dims > 0).all()):
             raise self.error(f"box node {node_id}: 'dimensions' must be 3 positive numbers")
         b = trimesh.creation.box(extents=dims)
-        mesh = ObjMesh(np.asarray(b.vertices), np.asarray(b.faces, dtype=np.int64), None, None)
+        mesh = Mesh(np.asarray(b.vertices), np.asarray(b.faces, dtype=np.int64))
         self.add(f"Box#{node_id}", 0, "Box", room_id, mesh, self.matrix(node, node_id), self.path,
                  material=_node_material(node))
 
@@ -548,13 +319,13 @@ def _bbox(instances: list[Instance]) -> dict:
     return {"min": v.min(0).tolist(), "max": v.max(0).tolist()}
 
 
-def _merge(instances: list[Instance]):
-    """One mesh from several: (vertices, faces, uv or None, material of the first)."""
+def _merge(instances: list[Instance]) -> Mesh:
+    """One mesh from several, with the material of the first (uv only when all have some)."""
     offsets = np.cumsum([0] + [len(i.vertices) for i in instances])
     v = np.concatenate([i.vertices for i in instances])
-    f = np.concatenate([i.faces + o for i, o in zip(instances, offsets)])
+    f = np.concatenate([i.faces + o for i, o in zip(instances, offsets[:-1], strict=True)])
     uv = None if any(i.uv is None for i in instances) else np.concatenate([i.uv for i in instances])
-    return v, f, uv, instances[0].material
+    return Mesh(v, f, uv, instances[0].material)
 
 
 def _write_categories(path: Path, rows: list[dict]) -> None:
@@ -649,8 +420,7 @@ def write_house(house: House, root: str | Path) -> Path:
                 group = parts[r.id].get(suffix, [])
                 node[hide] = 0 if group else 1
                 if group:
-                    v, f, uv, mat = _merge(group)
-                    write_obj(room_dir / f"{model_ids[r.id]}{suffix}.obj", v, f, uv, mat)
+                    write_obj(room_dir / f"{model_ids[r.id]}{suffix}.obj", [_merge(group)])
             node["bbox"] = _bbox([i for g in parts[r.id].values() for i in g]
                                  + [i for i in others[li] if i.room_id == r.id])
             nodes.append(node)
@@ -660,14 +430,14 @@ def write_house(house: House, root: str | Path) -> Path:
             node = {"id": f"{li}_{len(nodes)}", "valid": 1, "bbox": _bbox([inst])}
             if inst.category == NYU40_IDS["floor"] and inst.room_id is None:
                 mid = f"{_safe(house.id)}_ground{k}"
-                write_obj(room_dir / f"{mid}f.obj", inst.vertices, inst.faces, inst.uv, inst.material)
+                write_obj(room_dir / f"{mid}f.obj", [Mesh(inst.vertices, inst.faces, inst.uv, inst.material)])
                 node.update(type="Ground", modelId=mid)
             else:
                 mid = f"{_safe(house.id)}_{k}"
                 lo, hi = inst.vertices.min(0), inst.vertices.max(0)
                 origin = np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
-                write_obj(root / "object" / mid / f"{mid}.obj", inst.vertices - origin, inst.faces,
-                          inst.uv, inst.material)
+                write_obj(root / "object" / mid / f"{mid}.obj",
+                          [Mesh(inst.vertices - origin, inst.faces, inst.uv, inst.material)])
                 m = np.eye(4)
                 m[:3, 3] = origin
                 node.update(type="Object", modelId=mid, transform=m.T.reshape(-1).tolist())

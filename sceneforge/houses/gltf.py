@@ -1,0 +1,452 @@
+"""glTF 2.0 scenes (``.gltf``/``.glb``): read into meshes, write a house.
+
+Reading: one mesh per node that has triangles, in depth-first node order, node transforms
+applied (a mirroring transform reverses the winding); the primitives of a node's mesh are
+merged into one mesh with the material covering the most area. Triangle lists, strips
+and fans are read; points and lines are skipped.
+
+glTF is read here rather than with ``trimesh.load``: trimesh renames the primitives of a
+multi-primitive mesh with random suffixes and keeps textures only as decoded images, while
+sceneforge needs the glTF node names, a deterministic order and the image file paths (with a
+fallback when an image is missing, e.g. the ``.dds`` files of ``MSFT_texture_dds``).
+
+glTF's ``v`` runs down the image; sceneforge's uv follow OBJ/OpenGL (``v = 0`` at the
+bottom row), so ``v`` is flipped on the way in and out.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+from urllib.parse import unquote
+
+import numpy as np
+
+from .meshio import (
+    Mesh,
+    MeshFileError,
+    Warn,
+    distinct_materials,
+    encode_texture,
+    face_areas,
+    fan,
+    find_image,
+    ignore,
+    place,
+    quaternion_matrix,
+    texture_suffix,
+)
+from .model import House, Material
+
+__all__ = ["read_gltf", "write_gltf"]
+
+# --------------------------------------------------------------------------- glTF reading
+
+_GLB_MAGIC, _GLB_JSON, _GLB_BIN = b"glTF", 0x4E4F534A, 0x004E4942
+_COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
+_WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_TRIANGLES, _STRIP, _FAN = 4, 5, 6
+_MIME_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
+_UNSUPPORTED_REQUIRED = {"KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression"}
+
+
+class _Gltf:
+    """The JSON of a glTF 2.0 file and its buffers, with accessor and material decoding."""
+
+    def __init__(self, path: Path, warn: Warn):
+        self.path, self.warn = path, warn
+        try:
+            data = path.read_bytes()
+        except OSError as e:
+            raise MeshFileError(f"cannot read: {e.strerror or e}") from None
+        self.bin_chunk: bytes | None = None
+        if data[:4] == _GLB_MAGIC:
+            text = self._split_glb(data)
+        else:
+            text = data
+        try:
+            self.doc = json.loads(text)
+        except (UnicodeDecodeError, ValueError) as e:
+            raise MeshFileError(f"not a glTF file: its JSON does not parse ({e})") from None
+        version = self.doc.get("asset", {}).get("version", "") if isinstance(self.doc, dict) else ""
+        if not str(version).startswith("2"):
+            raise MeshFileError("not a glTF 2.0 file (asset.version is not 2.x)")
+        required = set(self.doc.get("extensionsRequired", [])) & _UNSUPPORTED_REQUIRED
+        if required:
+            raise MeshFileError(f"needs {', '.join(sorted(required))}, which sceneforge cannot decode; "
+                                "export the scene without mesh compression")
+        self.buffers: dict[int, bytes] = {}
+        self.materials: dict[int | None, Material] = {}
+        self.images: dict[int, object] = {}
+
+    def _split_glb(self, data: bytes) -> bytes:
+        if len(data) < 12:
+            raise MeshFileError(f"GLB is truncated: {len(data)} bytes, not even a header")
+        _, version, length = struct.unpack_from("<4sII", data)
+        if version != 2:
+            raise MeshFileError(f"GLB version {version} is not supported (only glTF 2.0)")
+        if length > len(data):
+            raise MeshFileError(f"GLB is truncated: its header says {length} bytes, the file has {len(data)}")
+        json_chunk, offset = None, 12
+        while offset + 8 <= length:
+            size, kind = struct.unpack_from("<II", data, offset)
+            offset += 8
+            if offset + size > length:
+                raise MeshFileError(
+                    f"GLB is truncated: a chunk of {size} bytes at {offset} ends past {length}")
+            chunk = data[offset:offset + size]
+            offset += size
+            if kind == _GLB_JSON and json_chunk is None:
+                json_chunk = chunk
+            elif kind == _GLB_BIN and self.bin_chunk is None:
+                self.bin_chunk = chunk
+        if json_chunk is None:
+            raise MeshFileError("GLB has no JSON chunk")
+        return json_chunk
+
+    def item(self, kind: str, index) -> dict:
+        """``doc[kind][index]``, or a HouseError saying which reference is broken."""
+        items = self.doc.get(kind, [])
+        if not isinstance(index, int) or not 0 <= index < len(items):
+            raise MeshFileError(f"{kind}[{index}] is referenced but the file has {len(items)} {kind}")
+        return items[index]
+
+    def buffer(self, index: int) -> bytes:
+        if index not in self.buffers:
+            spec = self.item("buffers", index)
+            uri = spec.get("uri")
+            if uri is None:
+                data = self.bin_chunk
+                if data is None:
+                    raise MeshFileError(f"buffers[{index}] has no uri and the file has no GLB binary chunk")
+            elif uri.startswith("data:"):
+                data = self._data_uri(uri, f"buffers[{index}]")
+            else:
+                file = self.path.parent / unquote(uri)
+                try:
+                    data = file.read_bytes()
+                except OSError as e:
+                    raise MeshFileError(f"cannot read buffer {uri!r}: {e.strerror or e}", file) from None
+            if len(data) < spec.get("byteLength", 0):
+                raise MeshFileError(
+                    f"buffers[{index}] is truncated: {len(data)} of {spec['byteLength']} bytes")
+            self.buffers[index] = data
+        return self.buffers[index]
+
+    def _data_uri(self, uri: str, what: str) -> bytes:
+        head, _, payload = uri.partition(",")
+        try:
+            if head.endswith(";base64"):
+                return base64.b64decode(payload, validate=True)
+            return unquote(payload).encode()
+        except ValueError as e:
+            raise MeshFileError(f"{what}: bad data URI ({e})") from None
+
+    def view_bytes(self, index: int) -> bytes:
+        view = self.item("bufferViews", index)
+        data, start = self.buffer(view["buffer"]), view.get("byteOffset", 0)
+        if start + view["byteLength"] > len(data):
+            raise MeshFileError(f"bufferViews[{index}] ends at byte {start + view['byteLength']} "
+                               f"but its buffer has {len(data)} (truncated file?)")
+        return data[start:start + view["byteLength"]]
+
+    def _view_array(self, view_index: int, offset: int, dtype: np.dtype, count: int, width: int,
+                    stride: int | None = None) -> np.ndarray:
+        data = self.view_bytes(view_index)
+        stride = stride or dtype.itemsize * width
+        end = offset + (count - 1) * stride + dtype.itemsize * width if count else offset
+        if end > len(data):
+            raise MeshFileError(
+                f"an accessor reads {end} bytes of bufferViews[{view_index}], which has {len(data)}")
+        return np.ndarray((count, width), dtype, buffer=data, offset=offset,
+                          strides=(stride, dtype.itemsize)).copy()
+
+    def accessor(self, index: int) -> np.ndarray:
+        """(count, width) array of accessor ``index`` (sparse and normalised values applied)."""
+        acc = self.item("accessors", index)
+        if acc.get("componentType") not in _COMPONENTS or acc.get("type") not in _WIDTHS:
+            raise MeshFileError(
+                f"accessors[{index}] has an unknown type {acc.get('componentType')}/{acc.get('type')}")
+        dtype, width, count = np.dtype(_COMPONENTS[acc["componentType"]]), _WIDTHS[acc["type"]], acc["count"]
+        if "bufferView" in acc:
+            stride = self.item("bufferViews", acc["bufferView"]).get("byteStride")
+            out = self._view_array(acc["bufferView"], acc.get("byteOffset", 0), dtype, count, width, stride)
+        else:
+            out = np.zeros((count, width), dtype)
+        sparse = acc.get("sparse")
+        if sparse:
+            n, ind, val = sparse["count"], sparse["indices"], sparse["values"]
+            where = self._view_array(ind["bufferView"], ind.get("byteOffset", 0),
+                                     np.dtype(_COMPONENTS[ind["componentType"]]), n, 1).ravel()
+            if len(where) and where.max() >= count:
+                raise MeshFileError(
+                    f"accessors[{index}]: sparse index {int(where.max())} is past its {count} elements")
+            out[where] = self._view_array(val["bufferView"], val.get("byteOffset", 0), dtype, n, width)
+        if acc.get("normalized") and dtype.kind in "iu":
+            out = np.maximum(out / np.iinfo(dtype).max, -1.0)
+        return out
+
+    def material(self, index: int | None) -> Material:
+        """The :class:`Material` of glTF material ``index`` (None: glTF's default, white)."""
+        if index not in self.materials:
+            if index is None:
+                self.materials[index] = Material(base_color=(1.0, 1.0, 1.0, 1.0))
+            else:
+                spec = self.item("materials", index)
+                pbr = spec.get("pbrMetallicRoughness")
+                if pbr is None:  # the retired spec-gloss workflow has the same two fields, renamed
+                    sg = spec.get("extensions", {}).get("KHR_materials_pbrSpecularGlossiness", {})
+                    pbr = {"baseColorFactor": sg.get("diffuseFactor"),
+                           "baseColorTexture": sg.get("diffuseTexture")}
+                color = pbr.get("baseColorFactor") or (1.0, 1.0, 1.0, 1.0)
+                tex = pbr.get("baseColorTexture")
+                self.materials[index] = Material(
+                    base_color=tuple(float(c) for c in color),
+                    texture=self.texture(tex["index"]) if tex else None,
+                )
+        return self.materials[index]
+
+    def texture(self, index: int):
+        """Image of texture ``index``: a Path, a PIL image (embedded), or None (with a warning).
+
+        The core ``source`` is tried first, then the sources of extensions such as
+        ``MSFT_texture_dds``; a missing image file may be replaced by its ``.png``/``.jpg`` twin.
+        """
+        spec = self.item("textures", index)
+        sources = [spec.get("source")] + [e.get("source") for e in spec.get("extensions", {}).values()
+                                          if isinstance(e, dict)]
+        tried = []
+        for source in (s for s in sources if s is not None):
+            image = self.image(source)
+            if image is not None:
+                return image
+            tried.append(self.item("images", source).get("uri", f"images[{source}]"))
+        self.warn(f"textures[{index}]: no readable image ({', '.join(tried) or 'none given'}); no texture")
+        return None
+
+    def image(self, index: int):
+        if index not in self.images:
+            spec = self.item("images", index)
+            uri = spec.get("uri")
+            if "bufferView" in spec:
+                image = _decode_image(self.view_bytes(spec["bufferView"]), f"images[{index}]", self.warn)
+            elif uri is None:
+                image = None
+            elif uri.startswith("data:"):
+                image = _decode_image(self._data_uri(uri, f"images[{index}]"), f"images[{index}]", self.warn)
+            else:
+                image = find_image(self.path.parent / unquote(uri), self.warn)
+            self.images[index] = image
+        return self.images[index]
+
+    def primitive(self, mesh_name: str, k: int, prim: dict):
+        """Vertices (n, 3) float64, faces (m, 3) int64, uv (n, 2) or None of one primitive."""
+        mode = prim.get("mode", _TRIANGLES)
+        if mode not in (_TRIANGLES, _STRIP, _FAN):
+            return None
+        if "POSITION" not in prim.get("attributes", {}):
+            raise MeshFileError(f"mesh {mesh_name!r} primitive {k} has no POSITION attribute")
+        vertices = self.accessor(prim["attributes"]["POSITION"]).astype(np.float64)
+        if len(vertices) and vertices.shape[1] != 3:
+            raise MeshFileError(f"mesh {mesh_name!r} primitive {k}: POSITION is not VEC3")
+        if "indices" in prim:
+            idx = self.accessor(prim["indices"]).ravel().astype(np.int64)
+        else:
+            idx = np.arange(len(vertices), dtype=np.int64)
+        if len(idx) and (idx.max() >= len(vertices) or idx.min() < 0):
+            raise MeshFileError(f"mesh {mesh_name!r} primitive {k}: index {int(idx.max())} is outside "
+                               f"its {len(vertices)} vertices")
+        if mode == _TRIANGLES:
+            if len(idx) % 3:
+                raise MeshFileError(
+                    f"mesh {mesh_name!r} primitive {k}: {len(idx)} indices is not a multiple of 3")
+            faces = idx.reshape(-1, 3)
+        elif len(idx) < 3:
+            faces = np.zeros((0, 3), np.int64)
+        elif mode == _FAN:
+            faces = fan(idx[None])
+        else:
+            faces = np.stack([idx[:-2], idx[1:-1], idx[2:]], axis=1)
+            faces[1::2, :2] = faces[1::2, 1::-1]  # odd triangles of a strip are wound the other way
+        uv = None
+        if "TEXCOORD_0" in prim["attributes"]:
+            uv = self.accessor(prim["attributes"]["TEXCOORD_0"]).astype(np.float64)
+            uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]) if uv.shape == (len(vertices), 2) else None
+        return vertices, faces, uv
+
+    def node_meshes(self):
+        """Yield (node name, mesh name, world matrix (4, 4) float64, mesh dict), depth-first."""
+        scenes = self.doc.get("scenes", [])
+        nodes = self.doc.get("nodes", [])
+        if scenes:
+            roots = self.item("scenes", self.doc.get("scene", 0)).get("nodes", [])
+        else:  # no scene: every node that is nobody's child is a root
+            children = {c for n in nodes for c in n.get("children", [])}
+            roots = [i for i in range(len(nodes)) if i not in children]
+        stack = [(i, np.eye(4), ()) for i in reversed(roots)]
+        while stack:
+            index, parent, ancestors = stack.pop()
+            if index in ancestors:
+                raise MeshFileError(f"nodes[{index}] is its own ancestor (cyclic node hierarchy)")
+            node = self.item("nodes", index)
+            world = parent @ _node_matrix(node)
+            if "mesh" in node:
+                mesh = self.item("meshes", node["mesh"])
+                mesh_name = mesh.get("name") or f"mesh{node['mesh']}"
+                yield node.get("name") or mesh.get("name") or f"node{index}", mesh_name, world, mesh
+            stack += [(c, world, (*ancestors, index)) for c in reversed(node.get("children", []))]
+
+
+def _node_matrix(node: dict) -> np.ndarray:
+    """(4, 4) float64 local transform of a glTF node: ``matrix`` or T · R · S."""
+    if "matrix" in node:
+        return np.asarray(node["matrix"], dtype=np.float64).reshape(4, 4).T
+    m = np.eye(4)
+    m[:3, :3] = quaternion_matrix(node.get("rotation", (0, 0, 0, 1))) * np.asarray(
+        node.get("scale", (1, 1, 1)), dtype=np.float64)
+    m[:3, 3] = node.get("translation", (0, 0, 0))
+    return m
+
+
+def _decode_image(data: bytes, what: str, warn: Warn):
+    """A PIL image from encoded bytes, or None (with a warning) when they do not decode."""
+    import PIL.Image
+
+    try:
+        image = PIL.Image.open(io.BytesIO(data))
+        image.load()
+    except (OSError, ValueError, PIL.Image.DecompressionBombError) as e:
+        warn(f"{what} cannot be decoded ({e}); no texture")
+        return None
+    return image
+
+
+def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
+    """Yield the meshes of a glTF/GLB scene (module docs), named after their nodes.
+
+    Raises :class:`MeshFileError` for anything unreadable; ``warn`` receives what was
+    tolerated (a missing texture image, several materials in one mesh).
+    """
+    try:
+        gltf = _Gltf(Path(path), warn)
+        for node_name, mesh_name, world, mesh in gltf.node_meshes():
+            parts = [(p, gltf.primitive(mesh_name, k, p)) for k, p in enumerate(mesh.get("primitives", []))]
+            parts = [(p, g) for p, g in parts if g is not None and len(g[1])]
+            if not parts:
+                continue
+            offsets = np.cumsum([0] + [len(g[0]) for _, g in parts])
+            vertices = np.concatenate([g[0] for _, g in parts])
+            faces = np.concatenate([g[1] + o for (_, g), o in zip(parts, offsets[:-1], strict=True)])
+            uv = np.concatenate([g[2] for _, g in parts]) if all(g[2] is not None for _, g in parts) else None
+            # An instance has one material: keep the one that covers the most surface.
+            areas = [face_areas(g[0], g[1]).sum() for _, g in parts]
+            materials = {p.get("material") for p, _ in parts}
+            if len(materials) > 1:
+                warn(f"mesh {mesh_name!r}: {len(materials)} materials, kept the one covering the most area")
+            material = gltf.material(parts[int(np.argmax(areas))][0].get("material"))
+            vertices, faces = place(vertices, faces, world)
+            yield Mesh(vertices, faces, uv, material, node_name, (mesh_name,))
+    except MeshFileError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        raise MeshFileError(f"malformed glTF ({type(e).__name__}: {e})") from None
+
+
+# --------------------------------------------------------------------------- glTF writing
+
+
+def write_gltf(path: Path, house: House, names: list[str]) -> None:
+    """Write ``house`` as ``.gltf`` (+ ``.bin`` and image files) or ``.glb`` (by suffix).
+
+    One node and mesh per instance, named ``names[k]``; positions are float32 relative to
+    the instance's centre, which is the node's translation. Textures other than PNG and JPEG
+    (the two types core glTF allows) are re-encoded as PNG.
+    """
+    binary = path.suffix.lower() == ".glb"
+    materials, material_index, textures = distinct_materials([i.material for i in house.instances])
+    chunks: list[bytes] = []
+    views: list[dict] = []
+    accessors: list[dict] = []
+
+    def view(data: bytes, target: int | None = None) -> int:
+        offset = sum(len(c) for c in chunks)
+        chunks.append(data + b"\0" * (-len(data) % 4))  # 4-byte alignment for float32/uint32
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
+                     | ({"target": target} if target else {}))
+        return len(views) - 1
+
+    def accessor(array: np.ndarray, component: int, kind: str, target: int, bounds: bool = False) -> int:
+        acc = {"bufferView": view(np.ascontiguousarray(array).tobytes(), target), "componentType": component,
+               "count": int(len(array)), "type": kind}
+        if bounds:
+            acc |= {"min": array.min(axis=0).tolist(), "max": array.max(axis=0).tolist()}
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    images = []
+    for k, tex in enumerate(textures):
+        suffix = texture_suffix(tex) if texture_suffix(tex) in _MIME_TYPES else ".png"
+        data = encode_texture(tex, suffix)
+        if binary:
+            images.append({"bufferView": view(data), "mimeType": _MIME_TYPES[suffix]})
+        else:
+            file = f"{path.stem}_texture{k}{suffix}"
+            (path.parent / file).write_bytes(data)
+            images.append({"uri": file})
+    texture_index = {id(t): k for k, t in enumerate(textures)}
+    gl_materials = []
+    for m in materials:
+        pbr = {"baseColorFactor": list(m.base_color), "metallicFactor": 0.0, "roughnessFactor": 1.0}
+        if m.texture is not None:
+            pbr["baseColorTexture"] = {"index": texture_index[id(m.texture)]}
+        gl_materials.append({"pbrMetallicRoughness": pbr})
+
+    meshes, nodes = [], []
+    for inst, name, mat in zip(house.instances, names, material_index, strict=True):
+        # float32 positions relative to the instance's centre (kept in float64 as the node's
+        # translation) lose far less than world coordinates would
+        center = (inst.vertices.min(axis=0) + inst.vertices.max(axis=0)) / 2
+        local = (inst.vertices - center).astype("<f4")
+        attributes = {"POSITION": accessor(local, 5126, "VEC3", 34962, bounds=True)}
+        if inst.uv is not None:
+            uv = np.column_stack([inst.uv[:, 0], 1.0 - inst.uv[:, 1]]).astype("<f4")
+            attributes["TEXCOORD_0"] = accessor(uv, 5126, "VEC2", 34962)
+        indices = accessor(inst.faces.astype("<u4").ravel(), 5125, "SCALAR", 34963)
+        primitive = {"attributes": attributes, "indices": indices, "material": mat}
+        meshes.append({"name": name, "primitives": [primitive]})
+        nodes.append({"name": name, "mesh": len(meshes) - 1, "translation": center.tolist()})
+
+    blob = b"".join(chunks)
+    buffer = {"byteLength": len(blob)}
+    if not binary:
+        buffer["uri"] = f"{path.stem}.bin"
+        (path.parent / buffer["uri"]).write_bytes(blob)
+    doc = {
+        "asset": {"version": "2.0", "generator": "sceneforge"},
+        "extras": {"sceneforge_house": house.id},
+        "scene": 0,
+        "scenes": [{"nodes": list(range(len(nodes)))}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "materials": gl_materials,
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [buffer] if blob else [],
+    }
+    if textures:
+        doc |= {"images": images, "textures": [{"source": k} for k in range(len(textures))]}
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    if not binary:
+        path.write_bytes(text)
+        return
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), _GLB_JSON) + text
+    if blob:
+        body += struct.pack("<II", len(blob), _GLB_BIN) + blob
+    path.write_bytes(struct.pack("<4sII", _GLB_MAGIC, 2, 12 + len(body)) + body)
+
+

@@ -1,0 +1,165 @@
+"""What every mesh file reader and writer shares, whatever the format.
+
+A reader turns a file into :class:`Mesh` records (source units and axes, no sceneforge
+categories) and reports what it cannot read as :class:`MeshFileError`; the loader that
+called it names the house. Writers share the material and texture helpers.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .model import Material
+
+#: Receives each problem a reader tolerated (a missing texture, a dropped material, ...).
+Warn = Callable[[str], None]
+
+# Image files tried, in order, in place of a missing texture image with the same stem.
+_TWIN_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+class MeshFileError(ValueError):
+    """A mesh file cannot be read: ``problem``, and the ``file`` at fault when it is not the
+    file being read (a glTF buffer, ...)."""
+
+    def __init__(self, problem: str, file: Path | None = None):
+        super().__init__(problem)
+        self.problem, self.file = problem, file
+
+
+@dataclass
+class Mesh:
+    """One triangle mesh as a file holds it.
+
+    vertices : (n, 3) float64  source units and axes
+    faces    : (m, 3) int64    indices into ``vertices``, counter-clockwise seen from outside
+    uv       : (n, 2) float    texture coordinates as :class:`~sceneforge.houses.model.Instance`
+               has them (v = 0 at the image bottom), or None
+    material : the mesh's one material, or None for the default
+    name     : the object/node name in the file ("" when it has none)
+    aliases  : further names its category may be looked up by (a glTF node's mesh name)
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    material: Material | None = None
+    name: str = ""
+    aliases: tuple[str, ...] = ()
+
+
+def ignore(message: str) -> None:
+    """A :data:`Warn` that drops the message."""
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def place(vertices, faces, matrix) -> tuple[np.ndarray, np.ndarray]:
+    """Apply an affine 4×4 ``matrix`` to a mesh; a mirroring matrix also reverses the winding.
+
+    vertices : (n, 3) float64 → (n, 3) float64
+    faces    : (m, 3) int64   → (m, 3) int64, each triangle reversed when det < 0 so that
+               normals still point outward
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    v = np.asarray(vertices, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
+    f = np.asarray(faces, dtype=np.int64)
+    if np.linalg.det(m[:3, :3]) < 0:
+        f = f[:, ::-1]
+    return v, f
+
+
+def quaternion_matrix(q) -> np.ndarray:
+    """(3, 3) float64 rotation of the unit quaternion ``q = (x, y, z, w)`` (normalised here)."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def fan(polygons: np.ndarray) -> np.ndarray:
+    """Triangles (n * (k - 2), 3) of n convex k-gons (n, k) by fans around their first corners."""
+    k = polygons.shape[1]
+    fans = np.stack([np.repeat(polygons[:, :1], k - 2, axis=1), polygons[:, 1:-1], polygons[:, 2:]], axis=2)
+    return fans.reshape(-1, 3)
+
+
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m,) float64 areas of faces (m, 3) int over vertices (n, 3) float."""
+    v = vertices[faces]
+    return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+
+def compact(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices ``faces`` (m, 3) int uses, in index order: (used (n,) int64, faces (m, 3)
+    int64 re-indexed into ``used``)."""
+    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
+    return used, inverse.reshape(-1, 3).astype(np.int64)
+
+
+# --------------------------------------------------------------------------- materials, textures
+
+
+def find_image(path: Path, warn: Warn, warn_missing: bool = False) -> Path | None:
+    """``path`` if it exists, else a ``.png``/``.jpg`` twin beside it (with a warning), else None."""
+    if path.is_file():
+        return path
+    for twin in (path.with_suffix(s) for s in _TWIN_SUFFIXES):
+        if twin != path and twin.is_file():
+            warn(f"texture {path.name} is missing, using {twin.name}")
+            return twin
+    if warn_missing:
+        warn(f"texture {path.name} is missing; no texture")
+    return None
+
+
+def distinct_materials(materials: list[Material | None]) -> tuple[list[Material], list[int], list]:
+    """Equal materials (same colour, same texture object) written once.
+
+    Returns the distinct materials, the index of each input among them (-1 for None) and the
+    distinct textures in order of first use.
+    """
+    keys: dict = {}
+    textures: dict[int, object] = {}
+    index = []
+    for m in materials:
+        if m is None:
+            index.append(-1)
+            continue
+        if m.texture is not None:
+            textures.setdefault(id(m.texture), m.texture)
+        key = (tuple(float(c) for c in m.base_color), id(m.texture) if m.texture is not None else None)
+        index.append(keys.setdefault(key, len(keys)))
+    distinct = [Material(base_color=color, texture=textures.get(tex_id)) for color, tex_id in keys]
+    return distinct, index, list(textures.values())
+
+
+def texture_suffix(texture) -> str:
+    """The file suffix a texture keeps when written: its file's, ``.png`` for an image in memory."""
+    return Path(texture).suffix.lower() if isinstance(texture, (str, Path)) else ".png"
+
+
+def encode_texture(texture, suffix: str) -> bytes:
+    """A :class:`Material` texture (an image file path or a PIL image) as an image file of type
+    ``suffix``: a file of that type as it is, anything else re-encoded."""
+    if isinstance(texture, (str, Path)) and texture_suffix(texture) == suffix.lower():
+        return Path(texture).read_bytes()
+    from PIL import Image
+
+    image = Image.open(texture) if isinstance(texture, (str, Path)) else texture
+    buf = io.BytesIO()
+    image.save(buf, format=Image.registered_extensions()[suffix.lower()])
+    return buf.getvalue()
+
+
+def save_texture(texture, dst: Path) -> None:
+    """Write a :class:`Material` texture to ``dst`` as the image type its suffix names."""
+    dst.write_bytes(encode_texture(texture, dst.suffix))
