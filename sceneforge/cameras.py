@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -103,7 +104,7 @@ class Camera:
         return Camera(scale @ self.K, self.cam_to_world, width, height)
 
     def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One ray per pixel, through the pixel centre.
+        """One ray per pixel, through the pixel centre (computed once per camera, read-only).
 
         Returns
         -------
@@ -112,6 +113,10 @@ class Camera:
         depth_scale : (H*W,) float64    planar depth of the point ``origin + t * direction``
                       is ``t * depth_scale``
         """
+        return self._rays
+
+    @cached_property
+    def _rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = self.width * self.height
         pixels = np.ones((n, 3))
         pixels[:, 0] = np.tile(np.arange(self.width) + 0.5, self.height)
@@ -120,7 +125,10 @@ class Camera:
         d_cam /= np.sqrt(np.einsum("ij,ij->i", d_cam, d_cam))[:, None]
         directions = d_cam @ self.cam_to_world[:3, :3].T
         origins = np.broadcast_to(self.cam_to_world[:3, 3], (n, 3)).copy()
-        return origins, directions, d_cam[:, 2].copy()
+        out = origins, directions, d_cam[:, 2].copy()
+        for a in out:
+            a.flags.writeable = False
+        return out
 
     def world_to_camera(self, points_world) -> np.ndarray:
         """(n, 3) float64 camera-frame coordinates of (n, 3) world points."""

@@ -236,22 +236,19 @@ def _soup(house: "House", ids, planes: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.concatenate(tris), np.concatenate(owner)
 
 
-def _in_front_of_envelope(
-    triangles: np.ndarray, camera: "Camera", d5: np.ndarray, margin: float
-) -> np.ndarray:
-    """(m,) bool: no vertex projects more than ``margin`` behind ``D5`` at its pixel.
+def _in_front_of_envelope(uv: np.ndarray, z: np.ndarray, d5: np.ndarray, margin: float) -> np.ndarray:
+    """(...) bool: a point does not project more than ``margin`` behind ``D5`` at its pixel.
 
+    uv : (..., 2) pixel coordinates and z : (...) planar depth of points in the frustum.
     Where ``D5`` is NaN the ray left the house without meeting the envelope, so there is
-    nothing to be behind and the vertex counts as in front (as in the reference).
+    nothing to be behind and the point counts as in front (as in the reference).
     """
-    uv, z = camera.project(triangles.reshape(-1, 3))
     h, w = d5.shape
-    # Vertices on the right/bottom frustum planes project onto the image border itself.
-    col = np.clip(np.floor(uv[:, 0]), 0, w - 1).astype(np.int64)
-    row = np.clip(np.floor(uv[:, 1]), 0, h - 1).astype(np.int64)
+    # Points on the right/bottom frustum planes project onto the image border itself.
+    col = np.clip(uv[..., 0], 0, w - 1).astype(np.int64)
+    row = np.clip(uv[..., 1], 0, h - 1).astype(np.int64)
     limit = d5[row, col].astype(np.float64) + margin
-    behind = np.isfinite(limit) & (z > limit)
-    return ~behind.reshape(-1, 3).any(axis=1)
+    return ~(np.isfinite(limit) & (z > limit))
 
 
 def _bisect(triangles: np.ndarray, edge: np.ndarray) -> np.ndarray:
@@ -281,22 +278,37 @@ def drop_behind_envelope(
     d5        : (H, W) float       envelope depth of the view, NaN where none
     Returns the kept triangles (k, 3, 3) float64 and source (k,) int64 (input index).
     """
-    tris = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
-    src = np.arange(len(tris), dtype=np.int64)
+    # The world triangles are bisected alongside camera-frame copies, so kept faces stay
+    # exact while each round projects only once.
+    world = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
+    rot, centre = camera.cam_to_world[:3, :3], camera.cam_to_world[:3, 3]
+    cam = (world - centre) @ rot
+    src = np.arange(len(world), dtype=np.int64)
     kept, kept_src = [np.zeros((0, 3, 3))], [np.zeros(0, dtype=np.int64)]
-    while len(tris):
-        ok = _in_front_of_envelope(tris, camera, d5, config.behind_envelope)
-        kept.append(tris[ok])
+    (fx, skew, cx), (fy, cy) = camera.K[0], camera.K[1, 1:]
+
+    def front(points):
+        z = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.stack([(fx * points[..., 0] + skew * points[..., 1]) / z + cx, fy * points[..., 1] / z + cy], -1)
+        return _in_front_of_envelope(uv, z, d5, config.behind_envelope), uv
+
+    while len(world):
+        vertex_ok, uv = front(cam)
+        ok = vertex_ok.all(axis=1)
+        kept.append(world[ok])
         kept_src.append(src[ok])
-        tris, src = tris[~ok], src[~ok]
-        if config.max_edge_pixels is None or not len(tris):
+        if config.max_edge_pixels is None or ok.all():
             break
-        uv, _ = camera.project(tris.reshape(-1, 3))
-        uv = uv.reshape(-1, 3, 2)
+        world, cam, src, uv, vertex_ok = world[~ok], cam[~ok], src[~ok], uv[~ok], vertex_ok[~ok]
+        # Refine only what may be partly visible: a vertex, an edge midpoint or the centroid
+        # is in front. Wholly hidden faces go at once instead of splitting into thousands.
+        samples = np.concatenate([0.5 * (cam + cam[:, [1, 2, 0]]), cam.mean(axis=1, keepdims=True)], axis=1)
+        partly = vertex_ok.any(axis=1) | front(samples)[0].any(axis=1)
         edge = np.linalg.norm(uv[:, [1, 2, 0]] - uv, axis=2)
-        big = edge.max(axis=1) > config.max_edge_pixels
-        tris = _bisect(tris[big], edge[big])
-        src = np.tile(src[big], 2)
+        split = partly & (edge.max(axis=1) > config.max_edge_pixels)
+        world, cam = _bisect(world[split], edge[split]), _bisect(cam[split], edge[split])
+        src = np.tile(src[split], 2)
     return np.concatenate(kept), np.concatenate(kept_src)
 
 

@@ -531,18 +531,24 @@ class OverheadTruth:
     floor_y: float
 
 
+def overhead_instances(house: "House", config: OverheadConfig | None = None) -> np.ndarray:
+    """(n_instances,) bool: the instances an overhead view sees (SPEC §7): objects not of the
+    ``truth_excluded`` classes, and floors; no other envelope surface."""
+    config = config or OverheadConfig()
+    category, envelope = instance_labels(house)
+    return ~_class_mask(house, config.truth_excluded) & (~envelope | (category == FLOOR))
+
+
 def overhead_keep(house: "House", hits, config: OverheadConfig | None = None) -> np.ndarray:
     """(k,) bool: which hits of straight-down rays count for the overhead ground truth.
 
-    Dropped: envelope surfaces other than floors, floor hits closer than
-    ``floor_clearance`` to the camera, and instances of the ``truth_excluded`` classes.
+    Dropped: instances :func:`overhead_instances` leaves out, and floor hits closer than
+    ``floor_clearance`` to the camera.
     """
     config = config or OverheadConfig()
-    category, envelope = instance_labels(house)
-    floor = category == FLOOR
-    excluded = _class_mask(house, config.truth_excluded)
+    floor = instance_labels(house)[0] == FLOOR
     inst = np.asarray(hits.instance, dtype=np.int64)
-    keep = ~excluded[inst] & (~envelope[inst] | floor[inst])
+    keep = overhead_instances(house, config)[inst]
     keep &= ~(floor[inst] & (np.asarray(hits.t) < config.floor_clearance))
     return keep
 
@@ -556,8 +562,11 @@ def overhead_truth(
     """
     config = config or OverheadConfig()
     origins, directions, depth_scale = camera.rays()
-    hits = tracer.all_hits(origins, directions)
     category, envelope = instance_labels(house)
+    seen = overhead_instances(house, config)
+    # the first floor beyond the clearance closes each ray, like the envelope in a frontal view
+    hits = tracer.frontal_hits(origins, directions, objects=seen & ~envelope, envelope=seen & envelope,
+                               envelope_near=config.floor_clearance)
     layers = layers_from_hits(hits, depth_scale, category, envelope, (camera.height, camera.width),
                               keep=overhead_keep(house, hits, config))
     top = float(camera.cam_to_world[1, 3])

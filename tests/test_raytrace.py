@@ -218,3 +218,21 @@ def test_bad_input_gives_specific_errors():
         tracer.first_hit([[0, np.nan, 0]], [[0, 0, 1.0]])
     empty = tracer.all_hits(np.zeros((0, 3)), np.zeros((0, 3)))
     assert empty.n_rays == 0 and len(empty.t) == 0
+
+
+@pytest.mark.parametrize("backend", ["open3d", "reference"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_instance_subset_equals_dropping_the_other_instances(backend, seed):
+    house = random_house(seed)
+    rng = np.random.default_rng(seed)
+    origins, directions = random_rays(rng, 500)
+    tracer = HouseTracer(house, backend)
+    subset = rng.random(len(house.instances)) < 0.5
+    everything = tracer.all_hits(origins, directions)
+    expected = everything.select(subset[everything.instance])
+    got = tracer.all_hits(origins, directions, instances=subset)
+    for field in ("offsets", "t", "instance", "triangle", "front_facing"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(expected, field))
+    assert len(got.t) < len(everything.t)
+    with pytest.raises(ValueError, match="instances must be"):
+        tracer.all_hits(origins, directions, instances=subset[:-1])

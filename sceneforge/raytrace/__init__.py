@@ -195,16 +195,16 @@ class Rays:
 
 
 class Backend(Protocol):
-    """What an engine answers. ``envelope`` restricts a query to envelope instances (True),
-    to object instances (False), or not at all (None)."""
+    """What an engine answers. ``instances`` (n_instances,) bool restricts a query to the
+    instances it marks (None: every instance)."""
 
     name: str
 
-    def intersect_all(self, rays: Rays, envelope: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every (ray, face) crossing with distance >= 0 in any order: two (k,) int64 arrays,
         faces indexing ``HouseTriangles.faces``. Back faces count."""
 
-    def intersect_first(self, rays: Rays, envelope: bool | None = None) -> np.ndarray:
+    def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
         """(n,) int64 face of the nearest crossing of each ray, -1 where none."""
 
     def closest_distance(self, points: np.ndarray) -> np.ndarray:
@@ -322,31 +322,47 @@ class HouseTracer:
 
             self.backend = ReferenceBackend(self.triangles)
 
-    def all_hits(self, origins, directions) -> Hits:
+    def all_hits(self, origins, directions, instances=None) -> Hits:
         """Every hit of every ray, back faces included, from one traversal per ray.
 
         origins, directions : (n, 3) float  ray origins and unit directions, world
+        instances           : (n_instances,) bool, optional  trace only these instances
+                              (the same hits as tracing all and dropping the others)
         """
         rays = Rays.check(origins, directions)
-        ray, face = self.backend.intersect_all(rays)
+        if instances is not None:
+            instances = np.asarray(instances, dtype=bool)
+            if instances.shape != (self.triangles.n_instances,):
+                raise ValueError(f"instances must be ({self.triangles.n_instances},) bool, got {instances.shape}")
+        ray, face = self.backend.intersect_all(rays, instances)
         return _collect_hits(self.triangles, rays, ray, face)
 
-    def frontal_hits(self, origins, directions) -> Hits:
-        """The hits the frontal layers use: each ray's first envelope hit and every object
-        hit up to ``tol.envelope_slack`` behind it (all object hits where no envelope is
-        hit). :func:`sceneforge.layers.layers_from_hits` gives the same layers from these
-        as from :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster. The one
-        exception: where two envelope surfaces are hit first at the same distance (within
-        float32 rounding), the engine picks one of them for D5.
+    def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0) -> Hits:
+        """The hits the layer rules use: each ray's first envelope hit and every object hit
+        up to ``tol.envelope_slack`` behind it (all object hits where no envelope is hit).
+        :func:`sceneforge.layers.layers_from_hits` gives the same layers from these as from
+        :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster. The one exception:
+        where two envelope surfaces are hit first at the same distance (within float32
+        rounding), the engine picks one of them for D5.
 
         origins, directions : (n, 3) float  ray origins and unit directions, world
+        objects             : (n_instances,) bool, optional  the object instances to trace
+                              (default: every non-envelope instance)
+        envelope            : (n_instances,) bool, optional  the instances that close a ray
+                              (default: the house's envelope); the overhead view passes floors
+        envelope_near       : envelope hits nearer than this are ignored (metres along the ray)
         """
         rays = Rays.check(origins, directions)
-        wall = self.backend.intersect_first(rays, envelope=True)
+        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
+        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        wall_rays = rays
+        if envelope_near > 0:
+            wall_rays = Rays.check(rays.origins + envelope_near * rays.directions, rays.directions)
+        wall = self.backend.intersect_first(wall_rays, envelope)
         walled = np.flatnonzero(wall >= 0)
         cutoff = np.full(len(rays), np.inf)
         cutoff[walled] = _plane_distance(self.triangles, wall[walled], walled, rays)[0] + tol.envelope_slack
-        ray, face = self.backend.intersect_all(rays, envelope=False)
+        ray, face = self.backend.intersect_all(rays, objects)
         return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, wall[walled]], cutoff)
 
     def first_hit(self, origins, directions) -> FirstHit:

@@ -8,7 +8,9 @@ Each instance is its own Open3D geometry. This is required, not a convenience: O
 hit filter skips a hit whose geometry id equals the previous hit's and whose distance
 equals it too. With the whole house as one mesh, a bookshelf's back touching the wall it
 stands against would lose the wall hit (seen on 23 % of the pixels of a toy-house view).
-Envelope and object instances are two separate scenes, so that a query can skip either.
+A query may be restricted to a subset of the instances (the envelope, the objects, the
+floors and objects an overhead view sees): each subset gets its own scenes, built on first
+use and kept, with envelope and objects always in separate scenes.
 
 Coordinates are shifted to the centre of the house before the float32 conversion, so that
 rounding is at the scale of the house, not of its distance from the origin.
@@ -36,29 +38,41 @@ class Open3DBackend:
                 "open3d", "fast ray tracing", "pip install 'sceneforge[trace]'"
             ) from None
         self._o3d = o3d
-        v = triangles.vertices
-        self._shift = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        self._triangles = triangles
+        self._shift = 0.5 * (triangles.vertices.min(axis=0) + triangles.vertices.max(axis=0))
         self._first_face = triangles.first_face
-        fv, ff = triangles.first_vertex, triangles.first_face
-        # envelope flag -> (scene, instance index of each of its geometry ids)
-        self._scenes: dict[bool, tuple[object, np.ndarray]] = {}
+        # subset mask bytes -> [(scene, instance index of each of its geometry ids)]
+        self._scenes: dict[bytes, list[tuple[object, np.ndarray]]] = {}
         for flag in (False, True):
-            members = np.flatnonzero(triangles.envelope == flag)
-            if not len(members):
-                continue
-            scene = o3d.t.geometry.RaycastingScene()
-            for i in members:
-                vertices = v[fv[i]:fv[i + 1]] - self._shift
-                faces = triangles.faces[ff[i]:ff[i + 1]] - fv[i]
-                scene.add_triangles(
-                    o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-                    o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
-                )
-            self._scenes[flag] = (scene, members)
+            self._selected(triangles.envelope == flag)
 
-    def _selected(self, envelope: bool | None):
-        """The (scene, members) pairs a query runs on; objects before envelope."""
-        return [self._scenes[f] for f in (False, True) if f in self._scenes and envelope in (None, f)]
+    def _scene(self, members: np.ndarray):
+        """One Open3D scene holding ``members`` (instance indices), one geometry each."""
+        o3d, tri = self._o3d, self._triangles
+        fv, ff = tri.first_vertex, tri.first_face
+        scene = o3d.t.geometry.RaycastingScene()
+        for i in members:
+            vertices = tri.vertices[fv[i]:fv[i + 1]] - self._shift
+            faces = tri.faces[ff[i]:ff[i + 1]] - fv[i]
+            scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+            )
+        return scene
+
+    def _selected(self, instances: np.ndarray | None):
+        """The (scene, members) pairs a query on the ``instances`` (n,) bool mask (None = all)
+        runs on; objects before envelope."""
+        if instances is None:
+            return self._selected(~self._triangles.envelope) + self._selected(self._triangles.envelope)
+        key = np.asarray(instances, dtype=bool).tobytes()
+        if key not in self._scenes:
+            self._scenes[key] = [
+                (self._scene(members), members)
+                for flag in (False, True)
+                if len(members := np.flatnonzero(instances & (self._triangles.envelope == flag)))
+            ]
+        return self._scenes[key]
 
     def _query(self, rays: Rays):
         """The rays as Open3D's (n, 6) float32 tensor, made once per batch."""
@@ -69,23 +83,23 @@ class Open3DBackend:
             rays.cache["open3d"] = self._o3d.core.Tensor(query)
         return rays.cache["open3d"]
 
-    def intersect_all(self, rays: Rays, envelope: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         ray_ids, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
         if len(rays):
-            for scene, members in self._selected(envelope):
+            for scene, members in self._selected(instances):
                 found = scene.list_intersections(self._query(rays))
                 ray_ids.append(found["ray_ids"].numpy().astype(np.int64))
                 instance = members[found["geometry_ids"].numpy()]
                 faces.append(self._first_face[instance] + found["primitive_ids"].numpy())
         return np.concatenate(ray_ids), np.concatenate(faces)
 
-    def intersect_first(self, rays: Rays, envelope: bool | None = None) -> np.ndarray:
+    def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
         face = np.full(len(rays), -1, dtype=np.int64)
         if not len(rays):
             return face
         query = self._query(rays)
         nearest = np.full(len(rays), np.inf, dtype=np.float32)
-        for scene, members in self._selected(envelope):
+        for scene, members in self._selected(instances):
             found = scene.cast_rays(query)
             t = found["t_hit"].numpy()
             geometry = found["geometry_ids"].numpy()

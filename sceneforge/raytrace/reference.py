@@ -45,7 +45,7 @@ class ReferenceBackend:
 
     def __init__(self, triangles: HouseTriangles, leaf_size: int = 64, batch: int = 1 << 20):
         self._corners = triangles.vertices[triangles.faces]
-        self._face_envelope = triangles.envelope[triangles.instance]
+        self._face_instance = triangles.instance
         self._batch = batch
         order = []
         for i in range(triangles.n_instances):
@@ -90,11 +90,11 @@ class ReferenceBackend:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         return np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
 
-    def _crossings(self, origins: np.ndarray, directions: np.ndarray, envelope: bool | None):
+    def _crossings(self, origins: np.ndarray, directions: np.ndarray, instances: np.ndarray | None):
         """Every (ray, face, t) crossing: (k,) int64, (k,) int64, (k,) float64."""
         ray, face = self._candidates(origins, directions)
-        if envelope is not None:
-            wanted = self._face_envelope[face] == envelope
+        if instances is not None:
+            wanted = instances[self._face_instance[face]]
             ray, face = ray[wanted], face[wanted]
         out_r, out_f, out_t = [], [], []
         for s in range(0, len(ray), self._batch):
@@ -108,12 +108,12 @@ class ReferenceBackend:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.concatenate(out_r), np.concatenate(out_f), np.concatenate(out_t)
 
-    def intersect_all(self, rays: Rays, envelope: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
-        ray, face, _ = self._crossings(rays.origins, rays.directions, envelope)
+    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        ray, face, _ = self._crossings(rays.origins, rays.directions, instances)
         return ray, face
 
-    def intersect_first(self, rays: Rays, envelope: bool | None = None) -> np.ndarray:
-        ray, face, t = self._crossings(rays.origins, rays.directions, envelope)
+    def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
+        ray, face, t = self._crossings(rays.origins, rays.directions, instances)
         order = np.lexsort((face, t, ray))
         ray, face = ray[order], face[order]
         first = np.r_[True, ray[1:] != ray[:-1]] if len(ray) else np.zeros(0, bool)
