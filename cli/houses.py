@@ -35,7 +35,7 @@ def inspect(path, load_options, preview_dir):
 
     out = Console(highlight=False, soft_wrap=True)
     ok = failed = 0
-    for source, house, error in iter_houses(path, load_options):
+    for _source, house, error in iter_houses(path, load_options):
         if error is not None:
             failed += 1
             out.print(f"[red]failed: {error}[/red]")

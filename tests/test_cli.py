@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from click.testing import CliRunner
-
 from sceneforge.cli.main import COMMANDS, cli
+
 from sceneforge.houses.native import write_house
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from sceneforge.cameras import look_at_camera, sample_cameras, CameraSamplerConfig
+from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.houses import House, load, make_instance
 from sceneforge.layers import first_hit_normals, frontal_layers, instance_labels, layers_from_hits

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from sceneforge.cli.main import cli
 
 from sceneforge.cameras import look_at_camera
-from sceneforge.cli.main import cli
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import House, Room
 from sceneforge.houses.native import write_house

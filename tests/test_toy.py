@@ -9,13 +9,20 @@ import numpy as np
 import pytest
 import trimesh
 from click.testing import CliRunner
-
 from sceneforge.cli.toy_houses import toy_houses
+
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses.native import load_house, write_house
 from sceneforge.houses.toy import (
-    BUNDLE_COUNT, BUNDLE_SEED, bundle_dir, build_toy_house, generate_house, house_seed,
-    toy_house_id, write_bundle, write_toy_houses,
+    BUNDLE_COUNT,
+    BUNDLE_SEED,
+    build_toy_house,
+    bundle_dir,
+    generate_house,
+    house_seed,
+    toy_house_id,
+    write_bundle,
+    write_toy_houses,
 )
 
 BUNDLED_IDS = [toy_house_id(BUNDLE_SEED, i) for i in range(BUNDLE_COUNT)]

@@ -669,7 +669,7 @@ def _on_top(rng, room: _Plan, support: _Piece, build) -> _Piece | None:
 def _rug_anywhere(rng, room: _Plan, w: tuple[float, float], d: tuple[float, float]) -> None:
     """A rug as large as fits, trying smaller ones when big ones hit furniture legs."""
     for scale in (1.0, 0.8, 0.6, 0.45):
-        if _free_standing(rng, room, lambda r: _rug(_u(r, *w) * scale, _u(r, *d) * scale)):
+        if _free_standing(rng, room, lambda r, s=scale: _rug(_u(r, *w) * s, _u(r, *d) * s)):
             return
 
 
