@@ -71,8 +71,8 @@ class TrimeshBackend:
 
 class NaiveTracer(HouseTracer):
     """The baseline pipeline: every hit of every ray through the whole house (trimesh
-    multi-hit), then the layer rules drop what lies behind the envelope. Gives the same
-    layers as sceneforge's envelope-first query, checked in :func:`main`."""
+    multi-hit), then the hits the layer rules may use are picked out. The layers agree
+    with sceneforge's except where trimesh drops coincident hits (measured in :func:`main`)."""
 
     def __init__(self, house):
         super().__init__(house)
@@ -81,8 +81,9 @@ class NaiveTracer(HouseTracer):
     def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near=0.0):
         objects = ~self.triangles.envelope if objects is None else objects
         envelope = self.triangles.envelope if envelope is None else envelope
-        hits = self.all_hits(origins, directions, instances=objects | envelope)
-        return hits.select(~(envelope[hits.instance] & (hits.t < envelope_near)))
+        hits = self.all_hits(origins, directions)
+        wanted = objects[hits.instance] | (envelope[hits.instance] & (hits.t >= envelope_near))
+        return hits.select(wanted)
 
 
 def tracer(house, backend: str) -> HouseTracer:

@@ -355,13 +355,17 @@ class HouseTracer:
         rays = Rays.check(origins, directions)
         objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
         envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
-        wall_rays = rays
-        if envelope_near > 0:
-            wall_rays = Rays.check(rays.origins + envelope_near * rays.directions, rays.directions)
-        wall = self.backend.intersect_first(wall_rays, envelope)
+        wall = self.backend.intersect_first(rays, envelope)
         walled = np.flatnonzero(wall >= 0)
+        t_wall = _plane_distance(self.triangles, wall[walled], walled, rays)[0]
+        near = walled[t_wall < envelope_near]
+        if len(near):  # rare (a floor right under an overhead camera): look again from past it
+            again = Rays.check(rays.origins[near] + envelope_near * rays.directions[near], rays.directions[near])
+            wall[near] = self.backend.intersect_first(again, envelope)
+            walled = np.flatnonzero(wall >= 0)
+            t_wall = _plane_distance(self.triangles, wall[walled], walled, rays)[0]
         cutoff = np.full(len(rays), np.inf)
-        cutoff[walled] = _plane_distance(self.triangles, wall[walled], walled, rays)[0] + tol.envelope_slack
+        cutoff[walled] = t_wall + tol.envelope_slack
         ray, face = self.backend.intersect_all(rays, objects)
         return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, wall[walled]], cutoff)
 
