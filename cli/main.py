@@ -17,6 +17,8 @@ COMMANDS = {
     "houses": "houses:houses",
     "toy-houses": "toy_houses:toy_houses",
     "overhead-camera": "overhead_camera:overhead_camera",
+    "evaluate": "evaluate:evaluate",
+    "doctor": "doctor:doctor",
 }
 
 

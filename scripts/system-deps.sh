@@ -2,6 +2,7 @@
 # Check the system libraries that sceneforge's Python packages load at run time, install the
 # missing ones when we are root on a Debian/Ubuntu machine, and name them otherwise.
 #   libEGL + Mesa's EGL driver  pyrender's offscreen rendering (GPU driver or Mesa software)
+#   Mesa's DRI drivers          swrast_dri.so, the software rasteriser EGL falls back to
 #   libGL                       PyOpenGL
 #   libusb-1.0                  Open3D (its Python module links it even without devices)
 #   libgomp                     Open3D and embreex (OpenMP)
@@ -17,6 +18,9 @@ missing=()
 for lib in "${!LIBS[@]}"; do
   ldconfig -p 2>/dev/null | grep -q "$lib" || missing+=("${LIBS[$lib]}")
 done
+# DRI drivers live outside the linker's path
+compgen -G "/usr/lib/*/dri/swrast_dri.so" >/dev/null || compgen -G "/usr/lib*/dri/swrast_dri.so" >/dev/null \
+  || missing+=(libgl1-mesa-dri)
 if [ ${#missing[@]} -eq 0 ]; then
   echo "system libraries: all present"
   exit 0

@@ -1,0 +1,128 @@
+"""``sceneforge doctor``: check the installation, one PASS/WARN/FAIL line per check."""
+
+from __future__ import annotations
+
+import importlib
+import platform
+import time
+from dataclasses import dataclass
+from importlib import metadata
+
+import click
+
+#: (import name, distribution name, what needs it, how to install it)
+PACKAGES = (
+    ("embreex", "embreex", "first-hit ray tracing", "pip install 'sceneforge[trace]'"),
+    ("open3d", "open3d", "all-hit ray tracing", "pip install 'sceneforge[trace]'"),
+    ("zarr", "zarr", "the store", "pip install 'sceneforge[store]'"),
+    ("torch", "torch", "the models", "pip install torch==2.13.0 'sceneforge[learn]'"),
+    ("pyrender", "pyrender", "RGB rendering", "pip install 'sceneforge[render]'"),
+    ("OpenGL", "PyOpenGL", "RGB rendering", "pip install 'sceneforge[render]'"),
+)
+
+
+@dataclass(frozen=True)
+class Check:
+    """The outcome of one check: status PASS, WARN (works, with a caveat) or FAIL."""
+
+    status: str
+    name: str
+    detail: str
+    install: str | None = None
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def check_package(module: str, dist: str, needed_for: str, install: str) -> Check:
+    """Import ``module`` (which also loads its system libraries) and report its version."""
+    try:
+        imported = importlib.import_module(module)
+    except Exception as e:  # any import failure (missing module, missing .so) is what we report
+        return Check("FAIL", dist, f"cannot import it ({_first_line(e)}); {needed_for} needs it", install)
+    try:
+        version = metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        version = getattr(imported, "__version__", "unknown version")
+    return Check("PASS", dist, version)
+
+
+def check_cuda() -> Check:
+    """Whether torch sees a CUDA device (training runs on the CPU without one)."""
+    try:
+        import torch
+    except Exception:
+        return Check("WARN", "torch CUDA", "torch is not importable (see above)")
+    if torch.cuda.is_available():
+        names = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        return Check("PASS", "torch CUDA", f"{torch.cuda.device_count()} device(s): {names}")
+    return Check("WARN", "torch CUDA", f"not available (torch {torch.__version__}): training runs on the CPU")
+
+
+def check_rendering(gpu: int | None) -> list[Check]:
+    """EGL devices, the OpenGL strings of a context, and one rendered frame of a toy house."""
+    import numpy as np
+
+    from sceneforge.cameras import CameraSamplerConfig, look_at_camera
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.houses import BUNDLED_TOY, discover, load
+    from sceneforge.render import INSTALL_EGL, Renderer, egl_devices
+
+    try:
+        devices = egl_devices()
+    except SceneforgeError as e:
+        return [Check("FAIL", "EGL", str(e))]
+    listed = ", ".join(f"{d.index} {d.kind}" + (f" ({d.drm_file})" if d.drm_file else "") for d in devices)
+    checks = [Check("PASS" if devices else "FAIL", "EGL devices", listed or "none", None if devices else INSTALL_EGL)]
+    if not devices:
+        return checks
+    house = load(discover(BUNDLED_TOY)[0])
+    room = [i for i in house.instances if i.room_id == house.instances[0].room_id]
+    lo = np.min([i.vertices.min(0) for i in room], axis=0)
+    hi = np.max([i.vertices.max(0) for i in room], axis=0)
+    eye = [(lo[0] + hi[0]) / 2, lo[1] + 1.5, (lo[2] + hi[2]) / 2]
+    camera = look_at_camera(eye, CameraSamplerConfig().view_direction(yaw=np.pi / 2))
+    try:
+        with Renderer(camera.width, camera.height, gpu=gpu) as renderer:
+            info = renderer.gl_info()
+            checks.append(Check("PASS", f"OpenGL on EGL device {renderer.device.index} ({renderer.device.kind})",
+                                f"{info['vendor']}, {info['renderer']}, {info['version']}"))
+            renderer.render(house, camera)  # compiles the shaders
+            start = time.perf_counter()
+            rgb = renderer.render(house, camera)
+            ms = 1e3 * (time.perf_counter() - start)
+            seen = float(np.isfinite(renderer.depth(house, camera)).mean())
+    except SceneforgeError as e:
+        return [*checks, Check("FAIL", "one-frame render", str(e))]
+    ok = seen > 0.5 and rgb.reshape(-1, 3).std(0).max() > 1.0
+    checks.append(Check(
+        "PASS" if ok else "FAIL", "one-frame render",
+        f"{house.id} {camera.width}×{camera.height} in {ms:.1f} ms, {100 * seen:.0f}% of pixels see a surface",
+        None if ok else "check the GL driver above; a blank or uniform frame means a broken driver",
+    ))
+    return checks
+
+
+@click.command("doctor")
+@click.option("--gpu", type=click.IntRange(min=0), default=None,
+              help="EGL device to render on. Default: $EGL_DEVICE_ID, else the first GPU, else Mesa's software device.")
+def doctor(gpu):
+    """Check the installation: versions of the optional packages, torch's CUDA, the EGL
+    devices and OpenGL driver, and one rendered frame of a bundled toy house. Prints one
+    PASS, WARN or FAIL line per check (with what to install for each FAIL) and exits with
+    status 1 when a check failed.
+    """
+    checks = [Check("PASS", "python", platform.python_version())]
+    checks += [check_package(*package) for package in PACKAGES]
+    checks.append(check_cuda())
+    checks += check_rendering(gpu)
+    colours = {"PASS": "green", "WARN": "yellow", "FAIL": "red"}
+    for c in checks:
+        click.echo(click.style(f"{c.status:<5}", fg=colours[c.status]) + f" {c.name}: {c.detail}")
+        if c.install:
+            click.echo(f"      install: {c.install}")
+    failed = sum(c.status == "FAIL" for c in checks)
+    click.echo(f"{failed} of {len(checks)} checks failed" if failed else f"all {len(checks)} checks passed")
+    if failed:
+        click.get_current_context().exit(1)

@@ -1,0 +1,367 @@
+"""RGB rendering through pyrender/EGL (SPEC §8): pixel-aligned with the ray-traced layers,
+materials and textures the right way up, deterministic baked lighting, one renderer reused
+across houses, and one-line errors when EGL cannot work.
+
+Golden images: ``tests/golden/*.png`` were rendered with Mesa's llvmpipe. After a deliberate
+change of the look, regenerate them with ``SCENEFORGE_REGEN_GOLDEN=1 pytest tests/test_render.py``
+and look at them before committing.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from PIL import Image
+from sceneforge.cli.doctor import doctor
+
+from sceneforge.cameras import (
+    Camera,
+    CameraSamplerConfig,
+    default_intrinsics,
+    look_at_camera,
+    pose_from_view,
+    sample_cameras,
+)
+from sceneforge.errors import SceneforgeError
+from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
+from sceneforge.layers import frontal_layers
+from sceneforge.raytrace import HouseTracer
+from sceneforge.render import GAMMA, RenderConfig, Renderer, room_lights, shade_house
+
+from .conftest import BREAKFAST_ROOM, box_instance
+
+pytest.importorskip("pyrender", reason="pyrender is not installed (pip install 'sceneforge[render]')")
+
+GOLDEN = Path(__file__).parent / "golden"
+REGEN = os.environ.get("SCENEFORGE_REGEN_GOLDEN") == "1"
+#: light every surface with exactly its base colour: rendered pixel = texel × base^(1/γ)
+UNLIT = RenderConfig(ambient=1.0, light=0.0)
+
+
+@pytest.fixture(scope="module")
+def toy_houses():
+    return [load(s) for s in discover(BUNDLED_TOY)]
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    with Renderer(320, 240) as r:
+        yield r
+
+
+def boxed_room(name="room") -> House:
+    """A 4 × 3 × 4 m room of grey envelope boxes around the origin, floor at y = 0."""
+    h = House(id=name, instances=[], rooms=[Room("r0", "room", 0)])
+    box_instance(h, "floor", 2, (4, 0.1, 4), (0, -0.05, 0))
+    box_instance(h, "ceiling", 22, (4, 0.1, 4), (0, 3.05, 0))
+    for i, (ext, c) in enumerate([((0.1, 3, 4), (-2.05, 1.5, 0)), ((0.1, 3, 4), (2.05, 1.5, 0)),
+                                  ((4, 3, 0.1), (0, 1.5, -2.05)), ((4, 3, 0.1), (0, 1.5, 2.05))]):
+        box_instance(h, f"wall{i}", 1, ext, c)
+    return h
+
+
+# --------------------------------------------------------------------------- alignment
+
+
+def toy_views(houses, per_house=2):
+    for house in houses:
+        tracer = HouseTracer(house)
+        cameras, _ = sample_cameras(house, per_house, np.random.default_rng(7), tracer=tracer)
+        assert len(cameras) == per_house
+        yield from ((house, tracer, c) for c in cameras)
+
+
+def test_zbuffer_depth_equals_ray_traced_first_hit(renderer, toy_houses):
+    """RGB and layers are aligned: the z-buffer (converted to planar metres) is the first hit
+    of the ray through each pixel centre, within 1 mm on >= 99 % of pixels of toy-house views."""
+    for house, tracer, camera in toy_views(toy_houses):
+        traced = frontal_layers(house, camera, tracer).traditional_depth
+        rendered = renderer.depth(house, camera)
+        assert rendered.dtype == np.float32 and rendered.shape == (240, 320)
+        seen = np.isfinite(traced)
+        assert seen.mean() > 0.95
+        assert (np.isfinite(rendered) == seen).mean() > 0.999, house.id
+        close = np.abs(rendered - traced) < 1e-3
+        assert close[seen].mean() >= 0.99, f"{house.id}: {close[seen].mean():.4f} of pixels within 1 mm"
+
+
+@pytest.mark.skipif(not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)")
+def test_textured_gltf_scene_is_aligned(renderer):
+    house = load(BREAKFAST_ROOM)
+    assert any(i.material.texture is not None and i.uv is not None for i in house.instances)
+    tracer = HouseTracer(house)
+    cameras, _ = sample_cameras(house, 1, np.random.default_rng(0), CameraSamplerConfig(max_escape_fraction=0.5),
+                                tracer)
+    traced = frontal_layers(house, cameras[0], tracer).traditional_depth
+    seen = np.isfinite(traced)
+    close = np.abs(renderer.depth(house, cameras[0]) - traced) < 1e-3
+    assert close[seen].mean() >= 0.99
+    assert renderer.render(house, cameras[0]).std() > 10  # textured, not blank
+
+
+def test_red_box_is_red_exactly_where_d1_is_the_box():
+    house = boxed_room()
+    box = box_instance(house, "box", 29, (0.6, 0.5, 0.4), (0.31, 0.25, 0.73))
+    box.material = Material(base_color=(1.0, 0.0, 0.0, 1.0))
+    # an off-grid pose and a skewed K, so that no edge runs through pixel centres by construction
+    K = default_intrinsics(160, 120) + np.array([[0, 3.0, 1.3], [0, 0, -0.7], [0, 0, 0]])
+    camera = Camera(K, pose_from_view([-0.93, 1.37, -1.41], [0.55, -0.52, 1.0]), 160, 120)
+    d1 = frontal_layers(house, camera).instance[0] == box.id
+    assert 0.05 < d1.mean() < 0.6
+    with Renderer(160, 120) as r:
+        rgb = r.render(house, camera).astype(int)
+    red = (rgb[..., 0] > 0) & (rgb[..., 1] == 0) & (rgb[..., 2] == 0)
+    np.testing.assert_array_equal(red, d1)
+    assert (rgb[~d1][:, 1] > 0).all()  # grey envelope everywhere else
+
+
+def test_antialiasing_blends_edges_and_is_off_by_default():
+    house = boxed_room()
+    box = box_instance(house, "box", 29, (0.6, 0.5, 0.4), (0.31, 0.25, 0.73))
+    box.material = Material(base_color=(1.0, 0.0, 0.0, 1.0))
+    camera = look_at_camera([-0.93, 1.37, -1.41], [0.55, -0.52, 1.0], width=160, height=120)
+
+    def blended(rgb):  # neither red (g = b = 0) nor grey (r = g = b)
+        rgb = rgb.astype(int)
+        return ((rgb[..., 1] > 0) & (rgb[..., 0] - rgb[..., 1] > 10)).sum()
+
+    with Renderer(160, 120) as sharp, Renderer(160, 120, antialias=True) as smooth:
+        plain, aa = sharp.render(house, camera), smooth.render(house, camera)
+    assert blended(plain) == 0
+    assert blended(aa) > 20  # the box outline
+    assert (np.abs(plain.astype(int) - aa).max(-1) > 2).mean() < 0.1  # and nothing else changes much
+
+
+# --------------------------------------------------------------------------- materials
+
+
+def quad_house(texture) -> tuple[House, Camera]:
+    """A 2 × 2 m textured quad facing a camera 2 m away, +Y up; uv (0, 0) at its bottom left
+    as the camera sees it. ``world(u, v)`` is the point of the quad at texture coordinates u, v."""
+    h = House(id="quad", instances=[])
+    # the camera looks along +z with +Y up, so its right is world -x
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    make_instance(h, name="poster", category=11, label="picture", room_id=None, vertices=world(uv),
+                  faces=[[0, 1, 2], [0, 2, 3]], uv=uv, material=Material((1.0, 1.0, 1.0, 1.0), texture))
+    return h, look_at_camera([0, 0, 0], [0, 0, 1], width=64, height=48)
+
+
+def world(uv) -> np.ndarray:
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    return np.column_stack([1 - 2 * uv[:, 0], 2 * uv[:, 1] - 1, np.full(len(uv), 2.0)])
+
+
+#: colour of each quadrant of the test texture and the uv of its centre (v = 1: top row)
+QUADRANTS = {(0, 0): ((255, 0, 0), (0.25, 0.75)), (0, 1): ((0, 255, 0), (0.75, 0.75)),
+             (1, 0): ((0, 0, 255), (0.25, 0.25)), (1, 1): ((255, 255, 255), (0.75, 0.25))}
+
+
+def quadrant_image() -> Image.Image:
+    """8 × 8 texels, one colour per 4 × 4 quadrant (row, column of quadrant from the top left)."""
+    a = np.zeros((8, 8, 3), np.uint8)
+    for (r, c), (colour, _) in QUADRANTS.items():
+        a[4 * r:4 * r + 4, 4 * c:4 * c + 4] = colour
+    return Image.fromarray(a)
+
+
+@pytest.mark.parametrize("kind", ["path", "image"])
+def test_texture_is_upright_and_exact(kind, tmp_path):
+    """uv follow the OpenGL convention: v = 1 is the top row of the image (a file from OBJ/MTL,
+    SUNCG or 3D-FRONT and a decoded image from GLB look the same)."""
+    texture = quadrant_image()
+    if kind == "path":
+        texture.save(tmp_path / "t.png")
+        texture = tmp_path / "t.png"
+    house, camera = quad_house(texture)
+    with Renderer(64, 48, config=UNLIT) as r:
+        rgb = r.render(house, camera)
+    for (row, column), (colour, uv) in QUADRANTS.items():
+        ((u, v),), _ = camera.project(world(uv))
+        assert (v < 24) == (row == 0) and (u < 32) == (column == 0)  # seen upright, not mirrored
+        assert tuple(rgb[int(v), int(u)]) == colour
+
+
+def test_unreadable_texture_names_house_and_file(tmp_path):
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    house, camera = quad_house(tmp_path / "broken.png")
+    with Renderer(64, 48) as r, pytest.raises(SceneforgeError, match=r"house quad: .*broken.png: cannot read texture"):
+        r.render(house, camera)
+
+
+def test_base_colour_and_alpha():
+    """Untextured: the linear base colour, gamma-encoded; alpha is ignored (opaque, like the layers)."""
+    house, camera = quad_house(None)
+    house.instances[0].material = Material((0.25, 0.5, 1.0, 0.3))
+    with Renderer(64, 48, config=UNLIT) as r:
+        rgb = r.render(house, camera)
+    expected = np.round(255 * np.array([0.25, 0.5, 1.0]) ** (1 / GAMMA))
+    np.testing.assert_allclose(rgb[24, 32], expected, atol=1)
+
+
+# --------------------------------------------------------------------------- lighting
+
+
+def test_room_light_hangs_under_the_ceiling_centre():
+    house = boxed_room()
+    (light,) = room_lights(house, RenderConfig(light=0.5, light_below_ceiling=0.3)).values()
+    np.testing.assert_allclose(light.position, [0, 3.1 - 0.3, 0])
+    # the farthest corner of the room's bounds, (±2.1, -0.1, ±2.1), receives `light`
+    np.testing.assert_allclose(light.intensity, 0.5 * (2 * 2.1 ** 2 + 2.9 ** 2))
+
+
+def test_baked_lighting_is_lambert_over_distance_squared_from_either_side():
+    config = RenderConfig(ambient=0.2, light=0.5, light_below_ceiling=0.0)
+    house = House(id="two", instances=[], rooms=[Room("a", "room", 0)])
+    # a floor quad (1 × 1 m at y = 0) and a marker that sets the room's top at y = 2
+    floor = make_instance(house, name="floor", category=2, label="floor", room_id="a",
+                          vertices=[[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], faces=[[0, 2, 1], [0, 3, 2]],
+                          material=Material((0.6, 0.6, 0.6, 1.0)))
+    make_instance(house, name="lamp", category=35, label="lamp", room_id="a",
+                  vertices=[[0.5, 2, 0.5], [0.6, 2, 0.5], [0.5, 2, 0.6]], faces=[[0, 1, 2]])
+    (light,) = room_lights(house, config).values()
+    np.testing.assert_allclose(light.position, [0.5, 2.0, 0.5])
+    (batch,) = shade_house(house, config)
+    corners = batch.positions[:6]
+    d2 = ((light.position - corners) ** 2).sum(1)
+    irradiance = light.intensity * (2.0 / np.sqrt(d2)) / d2  # cos = height / distance
+    expected = (0.6 * (0.2 + irradiance)) ** (1 / GAMMA)
+    np.testing.assert_allclose(batch.colors[:6, 0], expected, rtol=1e-6)
+    assert (batch.colors[:, 3] == 1).all()
+    # the floor turned upside down (normals down) is lit the same
+    floor.faces = floor.faces[:, ::-1].copy()
+    np.testing.assert_allclose(shade_house(house, config)[0].colors, batch.colors)
+
+
+def test_a_room_is_lit_by_its_own_light_only():
+    house = boxed_room()
+    before = shade_house(house)[0].colors.copy()
+    box_instance(house, "other room's wardrobe", 3, (1, 2.5, 1), (10, 1.25, 0), room_id="r1")
+    after = shade_house(house)[0].colors
+    np.testing.assert_array_equal(after[: len(before)], before)
+
+
+# --------------------------------------------------------------------------- lifecycle
+
+
+def test_same_view_same_pixels_across_houses_and_renderers(renderer, toy_houses):
+    a, b = toy_houses[:2]
+    (_, _, ca), (_, _, cb) = toy_views([a, b], per_house=1)
+    first = renderer.render(a, ca)
+    other = renderer.render(b, cb)
+    assert not np.array_equal(first, other)
+    np.testing.assert_array_equal(renderer.render(a, ca), first)  # rebuilt scene, same pixels
+    with Renderer(320, 240) as fresh:
+        np.testing.assert_array_equal(fresh.render(a, ca), first)
+    np.testing.assert_array_equal(renderer.render(a, ca), first)  # closing another renderer left this one working
+
+
+def test_switching_houses_frees_the_previous_scene(renderer, toy_houses):
+    camera = look_at_camera([2.0, 1.5, 2.0], [1.0, -0.2, 0.3])
+    renderer.render(toy_houses[0], camera)
+    primitives = [p for m in renderer._scene.meshes for p in m.primitives]
+    assert primitives and all(p._in_context() for p in primitives)
+    renderer.render(toy_houses[0], camera)
+    assert all(p._in_context() for p in primitives)  # same house: scene kept
+    renderer.render(toy_houses[1], camera)
+    assert not any(p._in_context() for p in primitives)
+
+
+def test_wrong_camera_size_and_closed_renderer():
+    house, camera = quad_house(None)
+    r = Renderer(32, 24)
+    with pytest.raises(ValueError, match="camera is 64×48 but the renderer renders 32×24"):
+        r.render(house, camera)
+    assert r.render(house, camera.resized(32, 24)).shape == (24, 32, 3)
+    r.close()
+    r.close()
+    with pytest.raises(SceneforgeError, match="closed"):
+        r.render(house, camera.resized(32, 24))
+
+
+def test_unknown_gpu_is_a_one_line_error():
+    with pytest.raises(SceneforgeError, match=r"EGL device 99 does not exist; this machine has 0 \(") as e:
+        Renderer(8, 8, gpu=99)
+    assert "\n" not in str(e.value)
+
+
+# --------------------------------------------------------------------------- golden image
+
+
+def test_golden_toy_view(toy_houses):
+    """A toy-house view looks as it did (tolerance: GL drivers round differently)."""
+    path = GOLDEN / "toy_0_000_view.png"
+    camera = look_at_camera([0.4, 1.6, 3.7], [1.0, -0.3, -1.0], width=160, height=120)  # living room corner
+    with Renderer(160, 120) as r:
+        rgb = r.render(toy_houses[0], camera)
+    if REGEN:
+        GOLDEN.mkdir(exist_ok=True)
+        Image.fromarray(rgb).save(path, optimize=True)
+    golden = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    diff = np.abs(rgb.astype(int) - golden).max(-1)
+    assert diff.mean() < 1.0 and (diff > 8).mean() < 0.01, \
+        f"mean difference {diff.mean():.2f}, {100 * (diff > 8).mean():.1f} % of pixels off by > 8"
+
+
+# --------------------------------------------------------------------------- EGL failures
+
+FAIL_SCRIPT = textwrap.dedent("""
+    from sceneforge.cli.doctor import check_rendering
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.render import Renderer
+    try:
+        Renderer(8, 8)
+    except SceneforgeError as e:
+        print(f"error: {e}")
+    for c in check_rendering(None):
+        print(c.status, c.name)
+""")
+
+NO_LIBEGL = textwrap.dedent("""
+    # libEGL is not installed: neither found nor loadable
+    import ctypes, ctypes.util
+    _find, _init = ctypes.util.find_library, ctypes.CDLL.__init__
+    ctypes.util.find_library = lambda name: None if "EGL" in name else _find(name)
+    def _load(self, name, *args, **kwargs):
+        if name and "EGL" in str(name):
+            raise OSError(f"{name}: cannot open shared object file: No such file or directory")
+        _init(self, name, *args, **kwargs)
+    ctypes.CDLL.__init__ = _load
+""")
+
+
+@pytest.mark.parametrize("broken, needs", [
+    ("libEGL", "needs libEGL"),
+    ("EGL vendor", "EGL lists no device) needs an EGL driver"),
+    ("Mesa driver", "no OpenGL 4.1 context on EGL device 0, software) needs a working EGL driver"),
+])
+def test_broken_egl_is_one_line_naming_what_to_install(broken, needs, tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("PYOPENGL_PLATFORM", "EGL_DEVICE_ID")}
+    if broken == "libEGL":
+        (tmp_path / "sitecustomize.py").write_text(NO_LIBEGL)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(tmp_path), env.get("PYTHONPATH")]))
+    elif broken == "EGL vendor":  # libglvnd without any EGL driver
+        env["__EGL_VENDOR_LIBRARY_FILENAMES"] = str(tmp_path / "none.json")
+    else:  # Mesa's EGL without its DRI drivers
+        env["LIBGL_DRIVERS_PATH"] = str(tmp_path)
+    res = subprocess.run([sys.executable, "-c", FAIL_SCRIPT], env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    errors = [line for line in res.stdout.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and needs in errors[0], res.stdout
+    assert "install it with `sudo apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri`" in errors[0]
+    assert "Traceback" not in res.stdout + res.stderr
+    assert any(line.startswith("FAIL ") for line in res.stdout.splitlines()), res.stdout
+
+
+def test_doctor_passes_here():
+    res = CliRunner().invoke(doctor, [])
+    assert res.exit_code == 0, res.output
+    for check in ("EGL devices", "OpenGL on EGL device", "one-frame render", "embreex", "open3d", "zarr", "torch"):
+        assert any(line.startswith("PASS") and check in line for line in res.output.splitlines()), check
+    assert "torch CUDA" in res.output
