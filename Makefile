@@ -24,6 +24,9 @@ install: $(STAMP)  ## create .venv and install sceneforge with every extra
 
 demo: $(STAMP)  ## the main job on the bundled toy houses (writes demo/)
 	$(VENV)/bin/sceneforge houses inspect bundled:toy --preview $(DEMO)/previews
+	$(VENV)/bin/sceneforge render bundled:toy $(DEMO)/toy.zarr --workers 2
+	$(VENV)/bin/sceneforge validate $(DEMO)/toy.zarr
+	$(VENV)/bin/sceneforge show $(DEMO)/toy.zarr --view 0 -o $(DEMO)/toy_view0.png --3d $(DEMO)/toy_view0.ply
 
 test: $(STAMP)  ## run the test suite (no GPU, no network)
 	$(PY) -m pytest -q -n 2

@@ -19,6 +19,10 @@ COMMANDS = {
     "overhead-camera": "overhead_camera:overhead_camera",
     "evaluate": "evaluate:evaluate",
     "doctor": "doctor:doctor",
+    "render": "render:render",
+    "validate": "render:validate",
+    "show": "render:show",
+    "export": "render:export",
 }
 
 

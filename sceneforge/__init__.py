@@ -11,3 +11,12 @@ try:
     __version__ = version("sceneforge")
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0+unknown"
+
+
+def __getattr__(name: str):
+    # ``sceneforge.open_store`` without importing zarr when sceneforge is imported
+    if name == "open_store":
+        from .store import open_store
+
+        return open_store
+    raise AttributeError(f"module 'sceneforge' has no attribute {name!r}")

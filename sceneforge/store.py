@@ -1,0 +1,669 @@
+"""The dataset store: a zarr v3 group written by ``sceneforge render`` (SPEC §9).
+
+The layout is defined once, in ``schemas/store.schema.json``: every array's path, dtype,
+shape (``x-dims``), fill value and meaning. This module reads that table (:func:`layout`)
+to create, fill, read and check stores, so writer, reader and validator cannot disagree.
+
+- **Per-view arrays** have the view index first, one view per chunk, and
+  ``config.store.views_per_shard`` views per shard file (zarr's sharding codec), each chunk
+  zstd-compressed. ``depth (N, 5, H, W) float32`` holds D1..D5 with NaN = no surface.
+- **Ground-truth meshes** (objects and envelope apart) are ragged: the vertices, faces and
+  face instances of all views concatenated in view order, with ``vertex_offsets`` and
+  ``face_offsets (N + 1,)``; faces index the view's own vertex rows.
+- **Group attributes** hold the schema and package versions, the resolved config, the seed,
+  the conventions, the NYU40 table, per-house provenance and the failure log.
+
+:func:`open_store` reads a store with numpy only (no PyTorch). :func:`validate_store` checks
+one against the schema and for internal consistency.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING, Iterable, Iterator
+
+import numpy as np
+
+from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
+from .errors import MissingDependencyError, SceneforgeError
+
+if TYPE_CHECKING:
+    import zarr
+
+    from .cameras import Camera
+    from .config import DatasetConfig
+    from .view import ViewGroundTruth
+
+SCHEMA_VERSION = "1.0"
+#: the two ground-truth meshes of a view, in the order the store keeps them
+MESH_KINDS: tuple[str, ...] = ("objects", "envelope")
+#: ragged mesh arrays: rows per chunk, and chunks per shard
+MESH_CHUNK_ROWS = 1 << 16
+MESH_SHARD_CHUNKS = 16
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One array of the layout (an entry of ``schemas/store.schema.json``).
+
+    name        : path in the group, e.g. ``depth`` or ``mesh/objects/faces``
+    dims        : symbolic shape: ``N`` views, ``H``/``W`` frontal image, ``Ho``/``Wo``
+                  overhead image, ``V``/``F`` mesh rows, ``N+1`` offsets, or a fixed size
+    dtype       : numpy dtype name, or ``string`` for variable-length UTF-8
+    fill        : value of a view that was not computed (per-view arrays)
+    per_view    : the first axis is the view index (one view per chunk, sharded)
+    optional    : the config flag that switches the array on, or None when always present
+    description : what it holds
+    """
+
+    name: str
+    dims: tuple
+    dtype: str
+    fill: object
+    per_view: bool
+    optional: str | None
+    description: str
+
+    def shape(self, sizes: dict[str, int]) -> tuple[int, ...]:
+        """The concrete shape for ``sizes`` (``{"N": .., "H": .., ...}``)."""
+        return tuple(d if isinstance(d, int) else sizes[d] for d in self.dims)
+
+    @property
+    def numpy_dtype(self):
+        return np.dtypes.StringDType() if self.dtype == "string" else np.dtype(self.dtype)
+
+    @property
+    def fill_value(self):
+        """The fill value as a Python scalar (NaN for ``"NaN"``)."""
+        return float("nan") if self.fill == "NaN" else self.fill
+
+    def blank(self, sizes: dict[str, int]) -> np.ndarray:
+        """One view of fill values: shape ``dims[1:]``."""
+        return np.full(self.shape(sizes)[1:], self.fill_value, dtype=self.numpy_dtype)
+
+
+@lru_cache(maxsize=None)
+def layout() -> dict[str, ArraySpec]:
+    """Every array of the store layout, by path, in schema order."""
+    from sceneforge import schemas
+
+    props = schemas.load("store")["properties"]["arrays"]["properties"]
+    return {
+        name: ArraySpec(
+            name=name,
+            dims=tuple(p["x-dims"]),
+            dtype=p["properties"]["dtype"]["const"],
+            fill=p.get("x-fill"),
+            per_view=p["$ref"].endswith("/per_view"),
+            optional=p.get("x-optional"),
+            description=p["description"],
+        )
+        for name, p in props.items()
+    }
+
+
+def _flag(config: "DatasetConfig", path: str) -> bool:
+    value = config
+    for part in path.split(".")[1:]:
+        value = getattr(value, part)
+    return bool(value)
+
+
+def array_specs(config: "DatasetConfig", per_view: bool | None = None) -> list[ArraySpec]:
+    """The arrays a store written with ``config`` holds (``per_view`` filters on that kind)."""
+    return [
+        s for s in layout().values()
+        if (s.optional is None or _flag(config, s.optional)) and (per_view is None or s.per_view == per_view)
+    ]
+
+
+def sizes_of(config: "DatasetConfig", n_views: int) -> dict[str, int]:
+    """The symbolic dimensions of :class:`ArraySpec` for ``config`` and ``n_views`` views."""
+    r = config.view.overhead.resolution
+    return {"N": n_views, "N+1": n_views + 1, "H": config.height, "W": config.width, "Ho": r, "Wo": r}
+
+
+def conventions_attrs() -> dict:
+    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes."""
+    return {
+        "units": "metres",
+        "up": "+Y",
+        "camera_axes": "OpenCV: x right, y down, z forward; poses are cam_to_world",
+        "pixel_centres": "integer + 0.5; K in pixels",
+        "depth": "planar z-depth along the camera's forward axis, float32 metres; NaN = no surface",
+        "layers": list(LAYER_NAMES),
+        "category_layers": [LAYER_NAMES[0], LAYER_NAMES[2], LAYER_NAMES[4]],
+        "instance_layers": [LAYER_NAMES[0], LAYER_NAMES[2]],
+        "tolerances": asdict(tol),
+    }
+
+
+def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dict:
+    """Group attributes known when a store is created (``complete`` false, no houses yet)."""
+    from sceneforge import __version__
+
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "package_version": __version__,
+        "complete": False,
+        "views": n_views,
+        "houses_source": houses_source,
+        "seed": config.seed,
+        "config": config.to_dict(),
+        "conventions": conventions_attrs(),
+        "nyu40": nyu40_table(),
+        "houses": [],
+        "failures": [],
+    }
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _compressor(config: "DatasetConfig"):
+    from zarr.codecs import ZstdCodec
+
+    return ZstdCodec(level=config.store.compression_level)
+
+
+def create_arrays(group: "zarr.Group", config: "DatasetConfig", n_views: int) -> None:
+    """(Re)create every per-view array of a store of ``n_views`` views, empty."""
+    sizes = sizes_of(config, n_views)
+    per_shard = config.store.views_per_shard
+    for spec in array_specs(config, per_view=True):
+        shape = spec.shape(sizes)
+        group.create_array(
+            spec.name, shape=shape, dtype=spec.numpy_dtype,
+            chunks=(1, *shape[1:]), shards=(per_shard, *shape[1:]),
+            compressors=_compressor(config), fill_value=spec.fill_value, overwrite=True,
+        )
+
+
+def view_arrays(gt: "ViewGroundTruth", rgb: np.ndarray | None, house_id: str, camera_id: int,
+                config: "DatasetConfig") -> dict[str, np.ndarray]:
+    """One view's entries of every per-view array (shapes without the view axis)."""
+    top = gt.overhead_camera
+    out = {
+        "depth": gt.layers.depth,
+        "category": gt.layers.category,
+        "instance": gt.layers.instance,
+        "overhead_depth": gt.overhead.layers.depth,
+        "overhead_height": gt.overhead.height,
+        "overhead_category": gt.overhead.category,
+        "K": gt.camera.K,
+        "cam_to_world": gt.camera.cam_to_world,
+        "overhead_cam_to_world": top.cam_to_world,
+        "overhead_params": top.params,
+        "overhead_extent": np.float64(top.half_extent),
+        "house_id": np.array(house_id, dtype=np.dtypes.StringDType()),
+        "camera_id": np.int32(camera_id),
+        "valid": np.bool_(True),
+    }
+    if config.rgb.enabled:
+        out["rgb"] = rgb
+    if config.store.normals:
+        out["normal"] = gt.layers.normal
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def blank_view(camera: "Camera", house_id: str, camera_id: int, config: "DatasetConfig") -> dict[str, np.ndarray]:
+    """The entries of a view whose ground truth failed: fill values, its camera and ids."""
+    sizes = sizes_of(config, 1)
+    out = {s.name: s.blank(sizes) for s in array_specs(config, per_view=True)}
+    out["K"], out["cam_to_world"] = np.asarray(camera.K), np.asarray(camera.cam_to_world)
+    out["house_id"] = np.array(house_id, dtype=np.dtypes.StringDType())
+    out["camera_id"] = np.int32(camera_id)
+    return out
+
+
+def shard_key(array: "zarr.Array", shard: int) -> str:
+    """Store key of the object holding shard ``shard`` of a per-view array."""
+    coords = (shard,) + (0,) * (array.ndim - 1)
+    return f"{array.path}/{array.metadata.chunk_key_encoding.encode_chunk_key(coords)}"
+
+
+def write_shard(arrays: dict[str, "zarr.Array"], start: int, views: list[dict[str, np.ndarray]]) -> None:
+    """Write consecutive views ``start, start + 1, ...`` (whole shards) into the per-view arrays."""
+    stop = start + len(views)
+    for name, array in arrays.items():
+        array[start:stop] = np.stack([v[name] for v in views])
+
+
+class RowWriter:
+    """Appends rows to a ragged array, writing each shard once, when it is full."""
+
+    def __init__(self, array: "zarr.Array"):
+        self.array, self.rows = array, array.shards[0]
+        self.pending: list[np.ndarray] = []
+        self.n_pending = 0
+        self.written = 0
+
+    def append(self, rows: np.ndarray) -> None:
+        self.pending.append(rows)
+        self.n_pending += len(rows)
+        while self.n_pending >= self.rows:
+            block = np.concatenate(self.pending)
+            self._write(block[: self.rows])
+            rest = block[self.rows:]
+            self.pending, self.n_pending = [rest], len(rest)
+
+    def close(self) -> None:
+        if self.n_pending:
+            self._write(np.concatenate(self.pending))
+        if self.written != self.array.shape[0]:
+            raise AssertionError(f"{self.array.path}: wrote {self.written} of {self.array.shape[0]} rows")
+
+    def _write(self, block: np.ndarray) -> None:
+        self.array[self.written: self.written + len(block)] = block
+        self.written += len(block)
+
+
+def write_meshes(group: "zarr.Group", config: "DatasetConfig", counts: np.ndarray,
+                 parts: Iterable[dict[str, np.ndarray]]) -> None:
+    """(Re)create the ragged mesh arrays and fill them from per-shard parts, in view order.
+
+    counts : (N, 2, 2) int64  per view, per kind (objects, envelope): vertex and face counts
+    parts  : dicts with ``<kind>_vertices (v, 3)``, ``<kind>_faces (f, 3)`` and
+             ``<kind>_instance (f,)`` of consecutive views, concatenated
+    """
+    specs = layout()
+    writers = {}
+    for k, kind in enumerate(MESH_KINDS):
+        offsets = np.zeros((len(counts) + 1, 2), dtype=np.int64)
+        np.cumsum(counts[:, k], axis=0, out=offsets[1:])
+        rows = {"V": int(offsets[-1, 0]), "F": int(offsets[-1, 1])}
+        for j, name in enumerate(("vertex_offsets", "face_offsets")):
+            group.create_array(f"mesh/{kind}/{name}", data=offsets[:, j].astype(specs[f"mesh/{kind}/{name}"].dtype),
+                               chunks=(MESH_CHUNK_ROWS,), compressors=_compressor(config), overwrite=True)
+        for name in ("vertices", "faces", "instance"):
+            spec = specs[f"mesh/{kind}/{name}"]
+            shape = spec.shape(rows)
+            array = group.create_array(
+                spec.name, shape=shape, dtype=spec.dtype, chunks=(MESH_CHUNK_ROWS, *shape[1:]),
+                shards=(MESH_CHUNK_ROWS * MESH_SHARD_CHUNKS, *shape[1:]), compressors=_compressor(config),
+                overwrite=True)
+            writers[f"{kind}_{name}"] = RowWriter(array)
+    for part in parts:
+        for key, writer in writers.items():
+            writer.append(part[key].astype(writer.array.dtype, copy=False))
+    for writer in writers.values():
+        writer.close()
+
+
+def mesh_part(meshes: list) -> dict[str, np.ndarray]:
+    """Concatenate the ground-truth meshes (:class:`~sceneforge.frustum.ViewMesh` or None for
+    a failed view) of consecutive views into one part for :func:`write_meshes`.
+
+    Returns the part plus ``counts (n, 2, 2) int64`` (per view, per kind: vertices, faces).
+    """
+    part: dict[str, list] = {f"{k}_{n}": [] for k in MESH_KINDS for n in ("vertices", "faces", "instance")}
+    counts = np.zeros((len(meshes), 2, 2), dtype=np.int64)
+    for i, mesh in enumerate(meshes):
+        for k, kind in enumerate(MESH_KINDS):
+            m = getattr(mesh, kind) if mesh is not None else None
+            v = np.zeros((0, 3), np.float32) if m is None else np.asarray(m.vertices, np.float32)
+            f = np.zeros((0, 3), np.int32) if m is None else np.asarray(m.faces, np.int32)
+            inst = np.zeros(0, np.int32) if m is None else np.asarray(m.instance, np.int32)
+            part[f"{kind}_vertices"].append(v)
+            part[f"{kind}_faces"].append(f)
+            part[f"{kind}_instance"].append(inst)
+            counts[i, k] = len(v), len(f)
+    out = {key: np.concatenate(arrays) for key, arrays in part.items()}
+    out["counts"] = counts
+    return out
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def _open_group(path: str, mode: str = "r", storage_options: dict | None = None) -> "zarr.Group":
+    try:
+        import zarr
+    except ImportError as e:
+        raise MissingDependencyError("zarr", "the dataset store", "pip install sceneforge[store]") from e
+    try:
+        return zarr.open_group(str(path), mode=mode, storage_options=storage_options)
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError, NotADirectoryError):
+        raise SceneforgeError(f"{path}: no zarr store there") from None
+
+
+class SceneStore:
+    """A store opened for reading; numpy arrays out, no PyTorch.
+
+    ``store.view(i)`` gives one view's entries of every per-view array (``rgb (H, W, 3)
+    uint8``, ``depth (5, H, W) float32``, ..., ``house_id`` and ``camera_id`` as 0-d
+    arrays); ``store.mesh(i)`` its ground-truth meshes; ``store.array(name)`` a lazily sliced
+    zarr array; ``store.attrs`` the group attributes (config, provenance, failure log).
+    """
+
+    def __init__(self, group: "zarr.Group"):
+        self.group = group
+        self.attrs: dict = group.attrs.asdict()
+        self._arrays: dict[str, "zarr.Array"] = {}
+        present = {name for name, _ in _arrays_of(group)}
+        self.names: tuple[str, ...] = tuple(s.name for s in layout().values() if s.per_view and s.name in present)
+        self.has_mesh = all(f"mesh/{k}/vertices" in present for k in MESH_KINDS)
+
+    def __len__(self) -> int:
+        return int(self.attrs["views"])
+
+    def __repr__(self) -> str:
+        return f"SceneStore({self.group.store}, {len(self)} views)"
+
+    @property
+    def config(self) -> "DatasetConfig":
+        """The resolved config the store was written with."""
+        from .config import DatasetConfig
+
+        return DatasetConfig.from_dict(self.attrs["config"], what=f"{self.group.store} config")
+
+    def array(self, name: str) -> "zarr.Array":
+        """The zarr array ``name`` (e.g. ``depth`` or ``mesh/objects/vertices``), for lazy slicing."""
+        if name not in self._arrays:
+            if name not in layout():
+                raise KeyError(f"no array {name!r} in the store layout; per-view arrays: {', '.join(self.names)}")
+            self._arrays[name] = self.group[name]
+        return self._arrays[name]
+
+    def _index(self, i: int) -> int:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"view {i} out of range for a store of {n} views")
+        return int(i) % n
+
+    def view(self, i: int) -> dict[str, np.ndarray]:
+        """Every per-view array's entry for view ``i``."""
+        i = self._index(i)
+        out = {name: np.asarray(self.array(name)[i]) for name in self.names}
+        out["house_id"] = np.asarray(str(out["house_id"]))
+        return out
+
+    def mesh(self, i: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """View ``i``'s ground-truth meshes: ``{"objects": (vertices (v, 3) float32,
+        faces (f, 3) int32), "envelope": (...)}``, faces indexing those vertices."""
+        if not self.has_mesh:
+            raise SceneforgeError("this store has no ground-truth meshes (config view.with_mesh was false)")
+        i = self._index(i)
+        out = {}
+        for kind in MESH_KINDS:
+            v0, v1 = self.array(f"mesh/{kind}/vertex_offsets")[i: i + 2]
+            f0, f1 = self.array(f"mesh/{kind}/face_offsets")[i: i + 2]
+            out[kind] = (self.array(f"mesh/{kind}/vertices")[v0:v1], self.array(f"mesh/{kind}/faces")[f0:f1])
+        return out
+
+
+def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
+    import zarr
+
+    with warnings.catch_warnings():
+        # the staging folder of a run in progress is not a zarr node
+        warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)
+        for path, node in group.members(max_depth=None):
+            if isinstance(node, zarr.Array):
+                yield path, node
+
+
+def open_store(path: str, storage_options: dict | None = None, *, allow_incomplete: bool = False) -> SceneStore:
+    """Open the store at ``path`` (a local path or an fsspec URL) for reading.
+
+    Raises :class:`SceneforgeError` when there is no sceneforge store there, or when the run
+    that writes it has not finished (unless ``allow_incomplete``).
+    """
+    group = _open_group(path, "r", storage_options)
+    if "schema_version" not in group.attrs:
+        raise SceneforgeError(f"{path}: not a sceneforge store (no schema_version attribute)")
+    if not group.attrs.get("complete") and not allow_incomplete:
+        raise SceneforgeError(
+            f"{path}: the store is incomplete (a render run is in progress or was interrupted); "
+            "run the same command again to finish it"
+        )
+    return SceneStore(group)
+
+
+# ---------------------------------------------------------------------------- checking
+
+
+def describe(group: "zarr.Group") -> dict:
+    """The document ``schemas/store.schema.json`` validates: attributes and array metadata."""
+    arrays = {}
+    for path, array in _arrays_of(group):
+        codecs = []
+        for codec in array.metadata.codecs:
+            codecs.append(codec.to_dict()["name"])
+            codecs += [c.to_dict()["name"] for c in getattr(codec, "codecs", ())]
+        arrays[path] = {
+            "shape": list(array.shape),
+            "dtype": array.metadata.data_type.to_json(zarr_format=3),
+            "chunks": list(array.chunks),
+            "shards": list(array.shards) if array.shards else None,
+            "codecs": codecs,
+        }
+    return {"attributes": group.attrs.asdict(), "arrays": arrays}
+
+
+def validate_store(path: str, storage_options: dict | None = None) -> list[str]:
+    """Every problem of the store at ``path``: schema, layout and content (empty = valid).
+
+    Content checks: layers are consistent with their NaNs (M1 = M2, M3 = M4, D3 only after
+    D1, classes and instances set exactly where a layer is), depths ordered and >= 0, classes
+    in 0..40, cameras finite and orthonormal, ids known, mesh offsets and faces in range.
+    """
+    from sceneforge import schemas
+
+    from .config import DatasetConfig
+
+    group = _open_group(path, "r", storage_options)
+    doc = describe(group)
+    problems = schemas.errors(doc, "store")
+    if problems:
+        return problems
+    attrs = doc["attributes"]
+    if not attrs["complete"]:
+        problems.append("incomplete: the render run has not finished; run the same command again")
+    try:
+        config = DatasetConfig.from_dict(attrs["config"], what="config attribute")
+    except SceneforgeError as e:
+        return problems + [str(e)]
+    n = attrs["views"]
+    problems += _check_layout(doc["arrays"], config, n)
+    problems += _check_attrs(attrs, n)
+    if problems:
+        return problems
+    store = SceneStore(group)
+    problems += _check_views(store, config)
+    if store.has_mesh:
+        problems += _check_meshes(store)
+    return problems
+
+
+def _check_layout(arrays: dict, config: "DatasetConfig", n: int) -> list[str]:
+    problems = []
+    sizes = sizes_of(config, n)
+    expected = {s.name: s for s in array_specs(config)}
+    for name in sorted(set(arrays) - set(expected)):
+        problems.append(f"{name}: not expected with this config")
+    for name, spec in expected.items():
+        meta = arrays.get(name)
+        if meta is None:
+            problems.append(f"{name}: missing")
+            continue
+        shape = tuple(meta["shape"])
+        if spec.per_view:
+            want = spec.shape(sizes)
+            if shape != want:
+                problems.append(f"{name}: shape {shape}, expected {want} {spec.dims}")
+            if tuple(meta["chunks"]) != (1, *want[1:]):
+                problems.append(f"{name}: chunks {meta['chunks']}, expected one view per chunk")
+            if meta["shards"][0] != config.store.views_per_shard:
+                problems.append(f"{name}: {meta['shards'][0]} views per shard, config says "
+                                f"{config.store.views_per_shard}")
+        elif spec.dims == ("N+1",) and shape != (n + 1,):
+            problems.append(f"{name}: shape {shape}, expected ({n + 1},)")
+        elif len(shape) != len(spec.dims) or any(isinstance(d, int) and d != s for d, s in zip(spec.dims, shape)):
+            problems.append(f"{name}: shape {shape} does not match {spec.dims}")
+    return problems
+
+
+def _check_attrs(attrs: dict, n: int) -> list[str]:
+    problems = []
+    if attrs["nyu40"] != nyu40_table():
+        problems.append("nyu40: the label table differs from this sceneforge's")
+    spans = [tuple(h["views"]) for h in attrs["houses"] if h["status"] == "ok"]
+    covered = sum(b - a for a, b in spans)
+    if sorted(spans) != spans or any(a2 != b1 for (_, b1), (a2, _) in zip(spans, spans[1:])) or covered != n:
+        problems.append(f"houses: view ranges {spans} do not tile the {n} views in order")
+    ids = {h["id"] for h in attrs["houses"]}
+    for f in attrs["failures"]:
+        if f["house"] not in ids:
+            problems.append(f"failures: house {f['house']!r} is not in the houses list")
+    return problems
+
+
+def _rigid_problems(T: np.ndarray) -> np.ndarray:
+    """(n,) bool: the (n, 4, 4) poses that are not finite rigid transforms."""
+    R = T[:, :3, :3]
+    bad = ~np.isfinite(T).all(axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        bad |= ~np.isclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=1e-5).all(axis=(1, 2))
+        bad |= np.linalg.det(np.where(np.isfinite(R), R, 0)) < 0
+    bad |= ~(T[:, 3] == [0, 0, 0, 1]).all(axis=1)
+    return bad
+
+
+def _per_view(mask: np.ndarray) -> np.ndarray:
+    """(n,) bool: the views of an (n, ...) mask with any pixel set."""
+    return mask.reshape(len(mask), -1).any(axis=1)
+
+
+def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
+    problems = []
+    spans = {h["id"]: h["views"] for h in store.attrs["houses"] if h["status"] == "ok"}
+    failed_views = {f["view"] for f in store.attrs["failures"] if f["stage"] == "view"}
+    step = config.store.views_per_shard
+    n_classes = len(NYU40_NAMES)
+
+    def report(what: str, bad: np.ndarray, start: int):
+        for i in np.flatnonzero(bad)[:3]:
+            problems.append(f"view {start + i}: {what}")
+        if bad.sum() > 3:
+            problems.append(f"... {int(bad.sum()) - 3} more views: {what}")
+
+    for start in range(0, len(store), step):
+        stop = min(start + step, len(store))
+        a = {name: store.array(name)[start:stop] for name in store.names}
+        valid = a["valid"]
+        for i, (hid, ok) in enumerate(zip(a["house_id"], valid)):
+            span = spans.get(str(hid))
+            if span is None or not span[0] <= start + i < span[1]:
+                problems.append(f"view {start + i}: house_id {str(hid)!r} does not own this view")
+            if ok == ((start + i) in failed_views):
+                problems.append(f"view {start + i}: valid is {bool(ok)} but the failure log "
+                                f"{'lists' if ok else 'does not list'} it")
+        report("camera_id < 0", a["camera_id"] < 0, start)
+        K = a["K"]
+        report("K is not finite with positive focal lengths",
+               ~np.isfinite(K).all(axis=(1, 2)) | ~(K[:, 0, 0] > 0) | ~(K[:, 1, 1] > 0), start)
+        report("cam_to_world is not a rigid transform", _rigid_problems(a["cam_to_world"]), start)
+        v = valid.astype(bool)
+        report("overhead_cam_to_world is not a rigid transform", v & _rigid_problems(a["overhead_cam_to_world"]),
+               start)
+        report("overhead_extent is not > 0", v & ~(a["overhead_extent"] > 0), start)
+        d, cat, inst = a["depth"], a["category"], a["instance"]
+        f = np.isfinite(d)
+        report("D1 and D2 are not set on the same pixels (M1 != M2)", _per_view(f[:, 0] != f[:, 1]), start)
+        report("D3 and D4 are not set on the same pixels (M3 != M4)", _per_view(f[:, 2] != f[:, 3]), start)
+        report("D3 is set where D1 is not", _per_view(f[:, 2] & ~f[:, 0]), start)
+        with np.errstate(invalid="ignore"):
+            report("negative depth", _per_view(d < 0), start)
+            report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - 1e-5), start)
+            report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - 1e-5), start)
+            report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - 1e-5), start)
+            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + 1e-5), start)
+        report("a class outside 0..40", _per_view(cat >= n_classes) | _per_view(a["overhead_category"] >= n_classes),
+               start)
+        for k, layer in ((0, 0), (1, 2), (2, 4)):
+            report(f"category of {LAYER_NAMES[layer]} set where {LAYER_NAMES[layer]} is NaN",
+                   _per_view(~f[:, layer] & (cat[:, k] != 0)), start)
+        for k, layer in ((0, 0), (1, 2)):
+            report(f"instance of {LAYER_NAMES[layer]} is not set exactly where {LAYER_NAMES[layer]} is",
+                   _per_view(f[:, layer] != (inst[:, k] >= 0)), start)
+        od = a["overhead_depth"]
+        fo = np.isfinite(od)
+        report("overhead: D1 and D2 are not set on the same pixels", _per_view(fo[:, 0] != fo[:, 1]), start)
+        report("overhead_height is not set exactly where overhead D1 is",
+               _per_view(np.isfinite(a["overhead_height"]) != fo[:, 0]), start)
+        report("a failed view holds data", ~v & (_per_view(f) | _per_view(fo)), start)
+        if "rgb" in a:
+            report("a failed view holds an RGB image", ~v & _per_view(a["rgb"] != 0), start)
+    return problems
+
+
+def _check_meshes(store: SceneStore) -> list[str]:
+    problems = []
+    for kind in MESH_KINDS:
+        vo = store.array(f"mesh/{kind}/vertex_offsets")[:]
+        fo = store.array(f"mesh/{kind}/face_offsets")[:]
+        nv, nf = store.array(f"mesh/{kind}/vertices").shape[0], store.array(f"mesh/{kind}/faces").shape[0]
+        for name, off, total in (("vertex_offsets", vo, nv), ("face_offsets", fo, nf)):
+            if off[0] != 0 or off[-1] != total or (np.diff(off) < 0).any():
+                problems.append(f"mesh/{kind}/{name}: not non-decreasing from 0 to {total}")
+        if problems:
+            continue
+        faces = store.array(f"mesh/{kind}/faces")
+        for start in range(0, len(store), 4096):
+            stop = min(start + 4096, len(store))
+            f = faces[fo[start]:fo[stop]]
+            owner = np.repeat(np.arange(start, stop), np.diff(fo[start:stop + 1]))
+            limit = (vo[owner + 1] - vo[owner])[:, None]
+            bad = (f < 0) | (f >= limit)
+            if bad.any():
+                view = int(owner[np.flatnonzero(bad.any(axis=1))[0]])
+                problems.append(f"mesh/{kind}/faces: view {view} has face indices outside its vertices")
+        if (store.array(f"mesh/{kind}/instance")[:] < 0).any():
+            problems.append(f"mesh/{kind}/instance: negative instance index")
+    return problems
+
+
+# ----------------------------------------------------------------------------- export
+
+
+def _srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    c = rgb.astype(np.float32) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def export_exr(store: SceneStore, index: int, path) -> None:
+    """Write view ``index`` as a two-part OpenEXR file (OpenEXR >= 3.2 Python API).
+
+    Part ``frontal`` (H × W): float channels ``D1``..``D5`` (planar depth, metres, NaN = no
+    surface) and, with RGB, linear ``R``, ``G``, ``B``. Part ``overhead`` (Ho × Wo):
+    ``height`` and ``D1``..``D5``. Headers carry ``K`` (3×3), ``cam_to_world`` (4×4, OpenCV
+    axes), ``house_id``, ``camera_id`` and ``view``; the overhead part also
+    ``overhead_cam_to_world``, ``overhead_extent`` and ``tx ty tz theta sigma``.
+    """
+    try:
+        import OpenEXR
+    except ImportError as e:
+        raise MissingDependencyError("OpenEXR", "EXR export", "pip install sceneforge[store]") from e
+
+    v = store.view(index)
+    H, W = v["depth"].shape[1:]
+    Ho, Wo = v["overhead_height"].shape
+    # parts of one file share the display window; each keeps its own data window
+    display = (np.array([0, 0], np.int32), np.array([max(W, Wo) - 1, max(H, Ho) - 1], np.int32))
+    common = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "displayWindow": display,
+              "house_id": str(v["house_id"]), "camera_id": int(v["camera_id"]), "view": int(index) % len(store),
+              "K": v["K"].astype(np.float64), "cam_to_world": v["cam_to_world"].astype(np.float64)}
+    frontal = {name: np.ascontiguousarray(v["depth"][k]) for k, name in enumerate(LAYER_NAMES)}
+    if "rgb" in v:
+        lin = _srgb_to_linear(v["rgb"])
+        frontal.update({c: np.ascontiguousarray(lin[..., k]) for k, c in enumerate("RGB")})
+    overhead = {name: np.ascontiguousarray(v["overhead_depth"][k]) for k, name in enumerate(LAYER_NAMES)}
+    overhead["height"] = np.ascontiguousarray(v["overhead_height"])
+    params = dict(zip(("tx", "ty", "tz", "theta", "sigma"), map(float, v["overhead_params"])))
+    top = {**common, "overhead_cam_to_world": v["overhead_cam_to_world"].astype(np.float64),
+           "overhead_extent": float(v["overhead_extent"]), **params}
+    parts = [OpenEXR.Part(common, frontal, name="frontal"), OpenEXR.Part(top, overhead, name="overhead")]
+    OpenEXR.File(parts).write(str(path))
