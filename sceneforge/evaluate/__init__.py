@@ -1,0 +1,65 @@
+"""Evaluation of multi-layer depth reconstructions (SPEC §11).
+
+- :mod:`.depth_mesh`: depth layers and overhead height maps → world-space meshes
+  (2×2 block triangulation with the edge rule).
+- :mod:`.surface`: uniform surface samples, point-to-mesh distance, precision and recall.
+- :mod:`.coverage`: unions of a view's layer meshes scored against its ground-truth
+  mesh; the coverage table (paper Table 1) and the predictions table (paper §5).
+- :mod:`.voxels`: voxel IoU of the layer intervals against the solid object mesh.
+- :mod:`.inputs`: what all of them read of a view, from a store or from ``compute_view``.
+
+Everything here is pure: arrays in, numbers out. ``sceneforge evaluate`` reads the stores.
+"""
+
+from .coverage import (
+    COVERAGE_VARIANTS,
+    GT_KINDS,
+    PAPER_COVERAGE,
+    PAPER_PREDICTIONS,
+    PREDICTION_VARIANTS,
+    SurfaceReport,
+    Variant,
+    ViewScores,
+    evaluate_views,
+    score_parts,
+    score_view,
+)
+from .depth_mesh import (
+    Mesh,
+    MeshingConfig,
+    concatenate,
+    grid_mesh,
+    height_map_mesh,
+    orthographic_mesh,
+    perspective_mesh,
+)
+from .inputs import OVERHEAD, PART_NAMES, EvalView, GroundTruthMesh
+from .surface import (
+    MeshDistance,
+    SurfaceConfig,
+    default_thresholds,
+    inlier_fraction,
+    precision_recall,
+    sample_surface,
+    surface_precision_recall,
+)
+from .voxels import (
+    VoxelConfig,
+    VoxelScore,
+    frustum_mask,
+    layer_occupancy,
+    mesh_occupancy,
+    plot_iou_histogram,
+    score_voxels,
+    voxel_iou,
+)
+
+__all__ = [
+    "COVERAGE_VARIANTS", "GT_KINDS", "OVERHEAD", "PAPER_COVERAGE", "PAPER_PREDICTIONS", "PART_NAMES",
+    "PREDICTION_VARIANTS", "EvalView", "GroundTruthMesh", "Mesh", "MeshDistance", "MeshingConfig",
+    "SurfaceConfig", "SurfaceReport", "Variant", "ViewScores", "VoxelConfig", "VoxelScore", "concatenate",
+    "default_thresholds", "evaluate_views", "frustum_mask", "grid_mesh", "height_map_mesh", "inlier_fraction",
+    "layer_occupancy", "mesh_occupancy", "orthographic_mesh", "perspective_mesh", "plot_iou_histogram",
+    "precision_recall", "sample_surface", "score_parts", "score_view", "score_voxels",
+    "surface_precision_recall", "voxel_iou",
+]

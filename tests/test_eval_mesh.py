@@ -1,0 +1,144 @@
+"""Depth layers → meshes: the 2×2 triangulation, the edge rule, world coordinates (SPEC §11)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sceneforge.cameras import Camera, default_intrinsics, look_at_camera
+from sceneforge.evaluate import EvalView, Mesh, concatenate, grid_mesh, height_map_mesh, perspective_mesh
+from sceneforge.evaluate.depth_mesh import MeshingConfig
+
+W, H = 320, 240
+K = default_intrinsics(W, H)
+F = K[0, 0]
+CAMERA = look_at_camera((1.0, 1.5, -2.0), (0.3, -0.2, 1.0), width=W, height=H)
+
+
+def test_fronto_parallel_plane_triangulates_to_its_area():
+    z = 2.5
+    mesh = perspective_mesh(np.full((H, W), z), K, CAMERA.cam_to_world)
+    # the mesh spans the pixel centres: (W-1) × (H-1) pixels of (z/f)² each, two triangles each
+    pixel = z / F
+    assert len(mesh) == 2 * (W - 1) * (H - 1)
+    assert mesh.area == pytest.approx((W - 1) * (H - 1) * pixel**2, rel=1e-9)
+    # and is within 1 % of the plane the camera sees (the whole image at depth z)
+    seen = W * H * pixel**2
+    assert abs(mesh.area - seen) / seen < 0.01
+    # in world coordinates: every vertex projects back onto its pixel centre at depth z
+    uv, depth = CAMERA.project(mesh.vertices)
+    np.testing.assert_allclose(depth, z, atol=1e-9)
+    np.testing.assert_allclose(uv % 1.0, 0.5, atol=1e-6)
+    # and every face is wound to face the camera
+    tri = mesh.triangles
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (normal @ CAMERA.view_direction < 0).all()
+
+
+def test_depth_jump_beyond_the_edge_rule_makes_no_bridge():
+    depth = np.full((H, W), 2.0)
+    depth[:, W // 2:] = 3.0  # 1 m jump, far above 7 × 2 m / 259 px ≈ 5.4 cm
+    mesh = perspective_mesh(depth, K, CAMERA.cam_to_world)
+    _, z = CAMERA.project(mesh.vertices)
+    near = np.isclose(z, 2.0)[mesh.faces]
+    assert (near.all(axis=1) | ~near.any(axis=1)).all(), "a triangle joins the two planes"
+    # each side is meshed completely: (W/2 - 1) × (H - 1) blocks of two triangles
+    assert len(mesh) == 2 * 2 * (W // 2 - 1) * (H - 1)
+
+
+@pytest.mark.parametrize("factor, bridged", [(0.95, True), (1.05, False)])
+def test_edge_rule_threshold_is_a_times_the_nearer_footprint(factor, bridged):
+    z, a = 2.0, 7.0
+    depth = np.full((2, 2), z)
+    depth[:, 1] = z + factor * a * z / F  # horizontal edges jump just under / over the limit
+    mesh = perspective_mesh(depth, K, np.eye(4), a=a)
+    assert len(mesh) == (2 if bridged else 0)
+
+
+@pytest.mark.parametrize("factor, kept", [(1.3, True), (1.5, False)])
+def test_diagonal_edges_allow_sqrt2_more(factor, kept):
+    # corners 1, 2, 3 valid (corner 0 missing): one triangle with the diagonal 1–2
+    z, a = 2.0, 7.0
+    jump = factor * a * z / F
+    depth = np.array([[np.nan, z], [z + jump, z + jump / 2]])
+    mesh = perspective_mesh(depth, K, np.eye(4), a=a)
+    assert len(mesh) == (1 if kept else 0)
+
+
+def test_four_corners_split_along_the_smaller_depth_difference():
+    # |d0 - d3| = 0.05 > |d1 - d2| = 0: split along the 1–2 diagonal
+    depth = np.array([[2.0, 2.01], [2.01, 2.05]])
+    points = np.zeros((2, 2, 3))
+    points[..., 0], points[..., 1] = np.meshgrid([0.0, 1.0], [0.0, 1.0])
+    mesh = grid_mesh(points, depth, np.full((2, 2), 1.0), a=7.0)
+    assert len(mesh) == 2
+    corner = {tuple(p[:2]): k for k, p in enumerate(mesh.vertices)}
+    diagonal = {corner[(1.0, 0.0)], corner[(0.0, 1.0)]}
+    assert all(diagonal <= set(face) for face in mesh.faces.tolist())
+
+
+def test_nan_pixels_give_no_vertices():
+    depth = np.full((4, 4), 2.0)
+    depth[1:3, 1:3] = np.nan  # a hole: every block touching it has at most 3 valid corners
+    mesh = perspective_mesh(depth, K, np.eye(4))
+    assert np.isfinite(mesh.vertices).all()
+    # of the 8 blocks around the hole, the 4 corner blocks have 3 valid corners (one
+    # triangle each) and the 4 edge blocks only 2 (none)
+    assert len(mesh) == 4
+    assert perspective_mesh(np.full((4, 4), np.nan), K, np.eye(4)).area == 0
+
+
+def test_overhead_height_map_mesh_is_metric_and_skips_the_floor():
+    res, half, tz = 50, 2.0, 2.4
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # columns: x right, image down +Z, z world down
+    pose[:3, 3] = (0.5, 3.0, 1.0)                       # floor at 3.0 - 2.4 = 0.6
+    height = np.full((res, res), 0.8, dtype=np.float32)
+    height[:, :10] = 0.05   # at the 5 cm limit (in float32, as stored): floor, not meshed
+    height[:, 10:12] = 0.06  # just above: meshed
+    mesh = height_map_mesh(height, pose, half, tz)
+    pixel = 2 * half / res
+    # the 6 cm strip (1 block wide) and the 80 cm top (37 blocks) stay apart: the 74 cm
+    # step is more than 7 pixels (56 cm)
+    assert len(mesh) == 2 * (res - 1) * (1 + 37)
+    assert mesh.area == pytest.approx((1 + 37) * (res - 1) * pixel**2, rel=1e-6)
+    # world heights: floor (3.0 - 2.4 = 0.6) + height
+    ys = np.unique(np.round(mesh.vertices[:, 1], 6))
+    np.testing.assert_allclose(ys, [0.6 + 0.06, 0.6 + 0.8], atol=1e-6)
+    # the footprint is the pixel size: a step of 6.9 pixel sizes is joined, 7.1 is not
+    for step, joined in ((6.9 * pixel, True), (7.1 * pixel, False)):
+        h = np.full((res, res), 1.0)
+        h[:, res // 2:] += step
+        faces = len(height_map_mesh(h, pose, half, tz, MeshingConfig(a=7.0)))
+        assert faces == (2 * (res - 1) ** 2 if joined else 2 * 2 * (res // 2 - 1) * (res - 1))
+
+
+def test_eval_view_meshes_every_part(small_house):
+    from sceneforge.raytrace import HouseTracer
+    from sceneforge.view import compute_view
+
+    camera = look_at_camera((0.0, 1.5, -1.6), (0.0, -0.2, 1.0), width=80, height=60)
+    gt = compute_view(small_house, camera, tracer=HouseTracer(small_house))
+    parts = EvalView.from_ground_truth(gt).meshes()
+    assert list(parts) == ["D1", "D2", "D3", "D4", "D5", "overhead"]
+    assert all(len(parts[p]) for p in ("D1", "D2", "D5", "overhead"))
+    # the table top seen from above lies at its world height (0.75 m)
+    top = parts["overhead"].vertices[:, 1]
+    assert np.isclose(top, 0.75, atol=1e-4).mean() > 0.3
+    both = concatenate([parts["D1"], parts["D2"]])
+    assert len(both) == len(parts["D1"]) + len(parts["D2"])
+    assert both.area == pytest.approx(parts["D1"].area + parts["D2"].area)
+
+
+def test_mesh_rejects_faces_outside_its_vertices():
+    with pytest.raises(ValueError, match="outside"):
+        Mesh(np.zeros((3, 3)), [[0, 1, 3]])
+
+
+def test_camera_with_principal_point_offset_is_respected():
+    K2 = K.copy()
+    K2[0, 2] += 17.0
+    cam = Camera(K2, CAMERA.cam_to_world, W, H)
+    mesh = perspective_mesh(np.full((H, W), 3.0), K2, cam.cam_to_world)
+    uv, _ = cam.project(mesh.vertices)
+    assert uv[:, 0].min() == pytest.approx(0.5) and uv[:, 0].max() == pytest.approx(W - 0.5)
