@@ -23,6 +23,8 @@ COMMANDS = {
     "validate": "render:validate",
     "show": "render:show",
     "export": "render:export",
+    "train": "train:train",
+    "predict": "train:predict",
 }
 
 

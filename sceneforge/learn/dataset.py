@@ -1,0 +1,221 @@
+"""Training samples from one or more stores (SPEC §9 → §10).
+
+- **Lazy reads**: a :class:`StoreDataset` keeps only view indices; each sample reads its
+  own chunks of the arrays it needs. Stores are opened on first use in each process and
+  never pickled, so any number of DataLoader workers can read at once.
+- **House-level split** (:func:`split_houses`): every view of a house falls in the same
+  split, so validation and test views show houses the networks never saw.
+- **Input normalisation** *(ref)*: ``(rgb − mean) / 255`` with the mean colour of the PBRS
+  images, :data:`RGB_MEAN`.
+- **Segmentation targets** (:func:`segmentation_target`): 40 classes per layer; class
+  ``c > 0`` is the NYU40 object class ``c + 1``, class 0 (:data:`BACKGROUND`, the slot of
+  "wall") is background: no object in that layer, void, or any room-envelope class
+  merged into one *(paper appendix)*.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..conventions import NYU40_NAMES, is_envelope
+from ..errors import SceneforgeError
+
+#: mean RGB colour (0..255) subtracted from every input image *(ref: PBRS renderings)*
+RGB_MEAN = (178.1781, 158.5039, 142.5141)
+#: segmentation classes per layer (frontal layers 1 and 3, and the overhead view)
+SEG_CLASSES = 40
+#: the background class: void, no object, and every room-envelope class
+BACKGROUND = 0
+
+#: sample keys → the store arrays they are made from
+SAMPLE_FIELDS: dict[str, tuple[str, ...]] = {
+    "rgb": ("rgb",),
+    "depth": ("depth",),
+    "seg": ("category",),
+    "overhead_height": ("overhead_height", "overhead_depth"),
+    "overhead_seg": ("overhead_category",),
+    "camera": ("K", "cam_to_world", "overhead_cam_to_world", "overhead_extent", "overhead_params"),
+}
+
+
+def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 → (3, H, W) float32 network input, ``(rgb − RGB_MEAN) / 255``."""
+    x = np.asarray(rgb, dtype=np.float32).transpose(2, 0, 1)
+    return (x - np.asarray(RGB_MEAN, dtype=np.float32)[:, None, None]) / 255.0
+
+
+def _class_table() -> np.ndarray:
+    table = np.arange(len(NYU40_NAMES), dtype=np.int64) - 1
+    table[0] = BACKGROUND
+    for k in range(1, len(NYU40_NAMES)):
+        if is_envelope(k):
+            table[k] = BACKGROUND
+    return table
+
+
+#: NYU40 id → segmentation class
+NYU40_TO_CLASS = _class_table()
+#: segmentation class → NYU40 id (0 for background)
+CLASS_TO_NYU40 = np.where(np.arange(SEG_CLASSES) == BACKGROUND, 0, np.arange(SEG_CLASSES) + 1)
+
+
+def segmentation_target(category: np.ndarray) -> np.ndarray:
+    """NYU40 ids (any shape, uint8) → segmentation classes (same shape, int64)."""
+    return NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
+
+
+@dataclass(frozen=True)
+class SplitConfig:
+    """How houses are divided into train, validation and test."""
+
+    #: fraction of the houses (rounded down) held out for validation
+    val_fraction: float = 0.1
+    #: fraction of the houses (rounded down) held out for testing
+    test_fraction: float = 0.1
+    #: seed of the shuffle that assigns houses to splits
+    seed: int = 0
+
+    def __post_init__(self):
+        v, t = self.val_fraction, self.test_fraction
+        if not (0 <= v and 0 <= t and v + t < 1):
+            raise ValueError(f"val and test fractions must be >= 0 and sum below 1, got "
+                             f"{self.val_fraction} and {self.test_fraction}")
+
+
+SPLITS = ("train", "val", "test")
+
+
+def split_houses(house_ids: Sequence[str], config: SplitConfig | None = None) -> dict[str, list[str]]:
+    """Assign houses to ``train``, ``val`` and ``test``: sorted ids shuffled with the seed,
+    then the first ⌊val·n⌋ to val, the next ⌊test·n⌋ to test, the rest to train. The same
+    houses and seed always give the same split."""
+    config = config or SplitConfig()
+    ids = sorted(set(map(str, house_ids)))
+    order = [ids[i] for i in np.random.default_rng(config.seed).permutation(len(ids))]
+    n_val, n_test = int(config.val_fraction * len(ids)), int(config.test_fraction * len(ids))
+    return {"val": sorted(order[:n_val]), "test": sorted(order[n_val:n_val + n_test]),
+            "train": sorted(order[n_val + n_test:])}
+
+
+@dataclass(frozen=True)
+class ViewIndex:
+    """The usable views of a list of stores.
+
+    stores : the store paths, in order
+    store  : (n,) int64  which store a view is in
+    view   : (n,) int64  its index in that store
+    house  : (n,) str    its house id
+    shapes : sizes of the stores' images: ``{"H", "W", "Ho", "Wo"}`` (equal in every store)
+    """
+
+    stores: tuple[str, ...]
+    store: np.ndarray
+    view: np.ndarray
+    house: np.ndarray
+    shapes: dict
+
+    def subset(self, houses: Sequence[str]) -> "ViewIndex":
+        keep = np.isin(self.house, np.asarray(list(houses), dtype=self.house.dtype))
+        return ViewIndex(self.stores, self.store[keep], self.view[keep], self.house[keep], self.shapes)
+
+    def __len__(self) -> int:
+        return len(self.view)
+
+
+def index_stores(paths: Sequence[str]) -> ViewIndex:
+    """Open every store once and list its valid views (failed views are left out).
+
+    Raises :class:`SceneforgeError` when a store cannot be opened, holds no RGB, or its image
+    sizes differ from the first store's.
+    """
+    from sceneforge.store import open_store
+
+    stores, views, houses, shapes = [], [], [], None
+    for k, path in enumerate(paths):
+        store = open_store(str(path))
+        if "rgb" not in store.names:
+            raise SceneforgeError(f"{path}: the store has no RGB images (rendered with rgb.enabled false)")
+        depth, top = store.array("depth"), store.array("overhead_height")
+        these = {"H": depth.shape[2], "W": depth.shape[3], "Ho": top.shape[1], "Wo": top.shape[2]}
+        if shapes is not None and these != shapes:
+            raise SceneforgeError(f"{path}: images of {these} differ from {paths[0]}'s {shapes}")
+        shapes = these
+        valid = np.flatnonzero(np.asarray(store.array("valid")[:], dtype=bool))
+        stores.append(str(path))
+        views.append(np.stack([np.full(len(valid), k), valid], axis=1))
+        houses.append(np.array([str(h) for h in store.array("house_id")[:]])[valid])
+    if not stores:
+        raise SceneforgeError("no store given")
+    v = np.concatenate(views).astype(np.int64)
+    return ViewIndex(tuple(stores), v[:, 0], v[:, 1], np.concatenate(houses), shapes)
+
+
+class StoreDataset(torch.utils.data.Dataset):
+    """Samples of the views of a :class:`ViewIndex` as dicts of tensors.
+
+    fields : sample keys (:data:`SAMPLE_FIELDS`) to read:
+
+    - ``rgb``: (3, H, W) float32 normalised input
+    - ``depth``: (5, H, W) float32 D1..D5 metres, NaN = none
+    - ``seg``: (2, H, W) int64 classes of layers 1 and 3
+    - ``overhead_height``: (Ho, Wo) float32 height above the floor; with ``floor_as_zero``,
+      0 where only the floor is hit; NaN where nothing is
+    - ``overhead_seg``: (Ho, Wo) int64 class of the first object seen from above
+    - ``camera``: ``K`` (3, 3), ``cam_to_world``, ``overhead_cam_to_world`` (4, 4),
+      ``overhead_extent`` () and ``overhead_params`` (5,) float64
+
+    Every sample also has ``index`` (its position in the dataset) int64.
+    """
+
+    def __init__(self, index: ViewIndex, fields: Sequence[str], floor_as_zero: bool = True):
+        unknown = set(fields) - set(SAMPLE_FIELDS)
+        if unknown:
+            raise ValueError(f"unknown sample fields {sorted(unknown)}; known: {sorted(SAMPLE_FIELDS)}")
+        self.index = index
+        self.fields = tuple(fields)
+        self.floor_as_zero = floor_as_zero
+        self._open: tuple[int, list] | None = None
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getstate__(self):
+        # zarr handles stay in the process that opened them; workers reopen lazily
+        return {**self.__dict__, "_open": None}
+
+    def _stores(self) -> list:
+        if self._open is None or self._open[0] != os.getpid():
+            from sceneforge.store import open_store
+
+            self._open = (os.getpid(), [open_store(p) for p in self.index.stores])
+        return self._open[1]
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        store = self._stores()[int(self.index.store[i])]
+        v = int(self.index.view[i])
+        read = lambda name: np.asarray(store.array(name)[v])  # noqa: E731
+        out: dict[str, torch.Tensor] = {"index": torch.tensor(i, dtype=torch.int64)}
+        if "rgb" in self.fields:
+            out["rgb"] = torch.from_numpy(normalize_rgb(read("rgb")))
+        if "depth" in self.fields:
+            out["depth"] = torch.from_numpy(read("depth").astype(np.float32))
+        if "seg" in self.fields:
+            out["seg"] = torch.from_numpy(segmentation_target(read("category")[:2]))
+        if "overhead_height" in self.fields:
+            height = read("overhead_height").astype(np.float32)
+            if self.floor_as_zero:
+                # the overhead D5 is the floor: where it alone is hit, the height is 0
+                floor = read("overhead_depth")[4]
+                height = np.where(np.isnan(height) & np.isfinite(floor), np.float32(0), height)
+            out["overhead_height"] = torch.from_numpy(height)
+        if "overhead_seg" in self.fields:
+            out["overhead_seg"] = torch.from_numpy(segmentation_target(read("overhead_category")))
+        if "camera" in self.fields:
+            for name in SAMPLE_FIELDS["camera"]:
+                out[name] = torch.from_numpy(read(name).astype(np.float64))
+        return out

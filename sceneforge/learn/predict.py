@@ -1,0 +1,221 @@
+"""Predictions of trained runs, written in the store layout (SPEC §9, §10).
+
+``predict(run, store, out)`` runs a run's nets on every view of a store and writes a new
+store with the same per-view arrays, so the evaluation reads predictions exactly like
+ground truth:
+
+- ``depth``: the depth net's D1..D5; with a segmentation net, D1/D2 (D3/D4) are NaN where
+  it sees no object in layer 1 (3) — the paper's predicted masks;
+- ``category``: the segmentation net's NYU40 classes of layers 1 and 3 where the layer is
+  set (0 elsewhere and for D5, which no net labels);
+- ``overhead_height``: the overhead height net's heights, NaN at or below
+  ``min_height`` above the floor (the floor; the paper keeps only pixels > 5 cm);
+- ``overhead_category``: the overhead segmentation net's classes;
+- cameras, ids and ``valid`` are copied from the source store, the overhead camera too
+  unless a camera proposal run gives it (``camera_run``: the frontal camera's gravity
+  frame at the true overhead camera height, centred on the predicted ``(tx, ty)``, of
+  half-diagonal ``sigma``, as the paper does at test time);
+- what no net predicts (``instance``, ``overhead_depth``) holds the fill values; there
+  is no ``rgb``, ``normal`` or mesh.
+
+Which nets run depends on the run: a depth or segmentation run predicts its frontal
+outputs; an overhead run predicts everything (its config names its frozen depth and
+segmentation runs).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import SceneforgeError
+from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
+from .eft import EpipolarFeatureTransformer
+from .networks import SEG_LAYERS, masked_layers
+from .train import load_run, overhead_input, resolve_device
+
+#: predicted heights at or below this (metres above the floor) are floor: NaN
+MIN_HEIGHT = 0.05
+#: arrays copied from the source store (the overhead camera ones unless a camera run places them)
+COPIED = ("house_id", "camera_id", "valid", "K", "cam_to_world", "overhead_cam_to_world", "overhead_params",
+          "overhead_extent")
+
+
+@dataclass(frozen=True)
+class PredictSummary:
+    """What a prediction run wrote: the new store, its views and the stages predicted."""
+
+    path: str
+    views: int
+    predicted: int
+    stages: tuple[str, ...]
+    seconds: float
+
+
+def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tuple[int, int],
+                              overhead_cam_to_world: np.ndarray, params: np.ndarray,
+                              proposal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Overhead cameras placed from proposed ``(tx, ty, sigma)``, per view.
+
+    K (n, 3, 3), cam_to_world (n, 4, 4), size (H, W): the frontal cameras;
+    overhead_cam_to_world (n, 4, 4) and params (n, 5): the true overhead cameras, whose
+    height is kept (known at test time, paper §5); proposal (n, 3).
+    Returns poses (n, 4, 4), half-extents (n,) and params (n, 5), like the store's.
+    """
+    from sceneforge.cameras import Camera
+    from sceneforge.overhead import gravity_frame
+
+    poses, extents, out = [], [], []
+    for k, (tx, ty, sigma) in enumerate(np.asarray(proposal, dtype=np.float64)):
+        sigma = max(sigma, 1e-3)  # a regressed radius can come out <= 0; a camera needs an extent
+        frame = gravity_frame(Camera(K[k], cam_to_world[k], size[1], size[0]))
+        up = frame.to_frame(overhead_cam_to_world[k][None, :3, 3])[0, 1]
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2] = frame.right, -frame.forward, (0.0, -1.0, 0.0)
+        pose[:3, 3] = frame.to_world(np.array([[tx, up, ty]]))[0]
+        poses.append(pose)
+        extents.append(sigma / math.sqrt(2.0))
+        out.append([tx, ty, params[k][2], frame.theta, sigma])
+    return np.array(poses), np.array(extents), np.array(out)
+
+
+def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool) -> dict:
+    """Every output of a batch as numpy arrays, keyed by store array name."""
+    rgb = batch["rgb"]
+    out: dict[str, np.ndarray] = {}
+    if camera:
+        feats = nets["camera_depth"](rgb)
+        proposal = nets["camera"](feats.features, feats.encoding).cpu().numpy()
+        pose, extent, params = proposed_overhead_cameras(
+            batch["K"].cpu().numpy(), batch["cam_to_world"].cpu().numpy(), tuple(rgb.shape[-2:]),
+            batch["overhead_cam_to_world"].cpu().numpy(), batch["overhead_params"].cpu().numpy(), proposal)
+        batch = {**batch, "overhead_cam_to_world": torch.from_numpy(pose).to(rgb.device),
+                 "overhead_extent": torch.from_numpy(extent).to(rgb.device),
+                 "overhead_params": torch.from_numpy(params).to(rgb.device)}
+        out.update(overhead_cam_to_world=pose, overhead_extent=extent, overhead_params=params)
+    if eft is not None:
+        x, layers, logits = overhead_input(nets, eft, batch)
+        height = nets["height"](x)[:, 0]
+        out["overhead_height"] = torch.where(height > MIN_HEIGHT, height, torch.nan).cpu().numpy()
+        top = nets["overhead_seg"](x).argmax(dim=1).cpu().numpy()
+        out["overhead_category"] = CLASS_TO_NYU40[top].astype(np.uint8)
+    else:
+        logits = nets["seg"](rgb).prediction if "seg" in nets else None
+        layers = None
+        if "depth" in nets:
+            depth = nets["depth"](rgb).prediction
+            layers = depth if logits is None else masked_layers(depth, logits)
+    if layers is not None:
+        out["depth"] = layers.float().cpu().numpy()
+    if logits is not None:
+        B, _, H, W = logits.shape
+        classes = logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W).argmax(dim=2).cpu().numpy()
+        category = np.zeros((B, 3, H, W), np.uint8)
+        category[:, :2] = CLASS_TO_NYU40[classes]
+        if layers is not None:
+            present = np.isfinite(out["depth"][:, [0, 2]])
+            category[:, :2] = np.where(present, category[:, :2], 0)
+        out["category"] = category
+    return out
+
+
+def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
+            batch_size: int = 8, device: str = "auto", workers: int = 0, overwrite: bool = False,
+            progress=None) -> PredictSummary:
+    """Write the predictions of ``run`` for every view of ``store`` to a new store ``out``.
+
+    camera_run : a camera proposal run; the overhead cameras come from it instead of the store
+    progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
+    Raises :class:`SceneforgeError` for a camera run given as RUN, an existing ``out``
+    without ``overwrite``, or a store without RGB images.
+    """
+    import time
+
+    import zarr
+
+    from sceneforge.store import array_specs, base_attrs, create_arrays, open_store, sizes_of, write_shard
+
+    t0 = time.perf_counter()
+    if Path(out).exists() and not overwrite:
+        raise SceneforgeError(f"{out} exists: pass --overwrite to replace it")
+    dev = resolve_device(device)
+    config, nets = load_run(run, dev)
+    if config.stage == "camera":
+        raise SceneforgeError(f"{run} is a camera run: give a depth, seg or overhead run, and the camera run "
+                              "with --camera-run")
+    stages = {"depth": ("depth",), "seg": ("seg",), "overhead": ("depth", "seg", "overhead")}[config.stage]
+    if camera_run is not None:
+        if config.stage != "overhead":
+            raise SceneforgeError("--camera-run places overhead cameras: it needs an overhead run")
+        cam_config, cam_nets = load_run(camera_run, dev)
+        if cam_config.stage != "camera":
+            raise SceneforgeError(f"{camera_run} is a {cam_config.stage} run, not a camera run")
+        nets.update(camera=cam_nets["camera"], camera_depth=cam_nets["depth"])
+        stages += ("camera",)
+
+    index = index_stores([store])
+    valid = index.view
+    source = open_store(store)
+    eft = None
+    if config.stage == "overhead":
+        eft = EpipolarFeatureTransformer(replace(config.eft, resolution=index.shapes["Wo"]))
+    dataset = StoreDataset(index, ("rgb", "camera"))
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
+
+    render_config = source.config
+    render_config = replace(render_config, rgb=replace(render_config.rgb, enabled=False),
+                            view=replace(render_config.view, with_mesh=False),
+                            store=replace(render_config.store, normals=False))
+    n = len(source)
+    group = zarr.open_group(str(out), mode="w")
+    create_arrays(group, render_config, n)
+    specs = array_specs(render_config, per_view=True)
+    arrays = {s.name: group[s.name] for s in specs}
+    sizes = sizes_of(render_config, n)
+    per_shard = render_config.store.views_per_shard
+    is_valid = np.zeros(n, bool)
+    is_valid[valid] = True
+    predicted: dict[int, dict[str, np.ndarray]] = {}
+    next_shard = 0
+
+    def flush(final: bool) -> None:
+        """Write every shard whose valid views all have their predictions."""
+        nonlocal next_shard
+        while next_shard < n:
+            a, b = next_shard, min(next_shard + per_shard, n)
+            if not final and any(is_valid[i] and i not in predicted for i in range(a, b)):
+                return
+            block = {spec.name: np.stack([spec.blank(sizes)] * (b - a)) for spec in specs}
+            for name in COPIED:
+                block[name] = np.asarray(source.array(name)[a:b])
+            for i in range(a, b):
+                for name, value in predicted.pop(i, {}).items():
+                    block[name][i - a] = value
+            write_shard(arrays, a, [{name: v[k] for name, v in block.items()} for k in range(b - a)])
+            next_shard = b
+
+    if progress:
+        progress.start("predicting views", len(valid), "views")
+    with torch.no_grad():
+        for batch in loader:
+            batch = {k: v.to(dev) for k, v in batch.items()}
+            outputs = _predict_batch(nets, eft, batch, camera_run is not None)
+            for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
+                predicted[int(i)] = {name: value[row] for name, value in outputs.items()}
+            flush(final=False)
+            if progress:
+                progress.advance(len(batch["index"]))
+    flush(final=True)
+
+    attrs = base_attrs(render_config, source.attrs["houses_source"], n)
+    attrs.update(complete=True, houses=source.attrs["houses"], failures=source.attrs["failures"],
+                 prediction={"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
+                             "source": str(store),
+                             "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
+                             "min_height": MIN_HEIGHT})
+    group.attrs.put(attrs)
+    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)

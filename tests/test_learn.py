@@ -1,0 +1,356 @@
+"""Models and training: losses with analytic values, networks' shapes, the dataset over a tiny
+store, a 2-step CPU smoke test of every stage, resume, overfitting, predictions and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+import pickle
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the learn extra (torch) is not installed")
+pytest.importorskip("zarr", reason="the store extra (zarr) is not installed")
+
+from sceneforge.conventions import NYU40_IDS  # noqa: E402
+from sceneforge.errors import SceneforgeError  # noqa: E402
+from sceneforge.learn.dataset import (  # noqa: E402
+    BACKGROUND,
+    CLASS_TO_NYU40,
+    RGB_MEAN,
+    SplitConfig,
+    StoreDataset,
+    index_stores,
+    normalize_rgb,
+    segmentation_target,
+    split_houses,
+)
+from sceneforge.learn.losses import LossConfig, depth_loss, height_loss, segmentation_loss  # noqa: E402
+from sceneforge.learn.networks import (  # noqa: E402
+    DEPTH_NET,
+    SEG_NET,
+    CameraProposalNet,
+    FrontalDepthNet,
+    FrontalSegNet,
+    OverheadNet,
+    masked_layers,
+)
+from sceneforge.learn.predict import predict, proposed_overhead_cameras  # noqa: E402
+from sceneforge.learn.train import TrainConfig, load_run, read_config, read_metrics, train  # noqa: E402
+
+TINY = 0.125  # network width multiplier of every test
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # the test machines share two cores: torch's thread pool spins for seconds under contention
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> str:
+    """3 bundled toy houses × 2 views, 64×48 frontal, 32×32 overhead."""
+    pytest.importorskip("pyrender", reason="the render extra (pyrender) is not installed")
+    from sceneforge.config import load_config
+    from sceneforge.pipeline import render_dataset
+
+    path = tmp_path_factory.mktemp("learn") / "toy.zarr"
+    config = load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
+                                "view": {"overhead": {"resolution": 32}}})
+    summary = render_dataset("bundled:toy", str(path), config)
+    assert summary.views == 6 and not summary.failed_houses
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def frontal_runs(store, tmp_path_factory) -> dict[str, str]:
+    """Depth and segmentation runs of 2 steps each, for the stages that freeze them."""
+    root = tmp_path_factory.mktemp("runs")
+    runs = {}
+    for stage in ("depth", "seg"):
+        runs[stage] = str(root / stage)
+        train(small_config(stage, store), runs[stage], device="cpu", tensorboard=False)
+    return runs
+
+
+def small_config(stage: str, store: str, **kw) -> TrainConfig:
+    defaults = dict(batch_size=3, max_steps=2, width=TINY, log_every=1, split=SplitConfig(0.0, 0.0))
+    return TrainConfig(stage=stage, stores=(store,), **{**defaults, **kw})
+
+
+# --------------------------------------------------------------------------- losses
+
+
+def test_depth_loss_is_equation_1():
+    target = torch.full((2, 5, 4, 4), 2.0)
+    target[0, :, :, 1:] = torch.nan  # example 0: 4 valid pixels per layer, example 1: 16
+    target[1, 2:4] = torch.nan  # example 1 has no D3, D4
+    pred = torch.where(torch.isnan(target), torch.tensor(100.0), target + 0.5)
+    pred[:, 4] = target[:, 4] + 3.0  # envelope off by 3 m: linear part of the Huber loss
+    small, big = 0.5 * 0.5 ** 2, 3.0 - 0.5  # Huber(0.5), Huber(3) with δ = 1
+    expected0 = 4 * small + 0.5 * big
+    expected1 = 2 * small + 0.5 * big
+    loss = depth_loss(pred, target)
+    assert loss.item() == pytest.approx((expected0 + expected1) / 2)
+    heavier = depth_loss(pred, target, LossConfig(envelope_weight=1.0))
+    assert heavier.item() == pytest.approx((expected0 + expected1) / 2 + 0.5 * big)
+
+
+def test_segmentation_targets_merge_the_envelope_into_background():
+    names = ("void", "wall", "floor", "ceiling", "door", "window", "curtain", "picture", "floor_mat")
+    assert all(segmentation_target(np.uint8(NYU40_IDS[n])) == BACKGROUND for n in names)
+    chair, lamp = NYU40_IDS["chair"], NYU40_IDS["lamp"]
+    classes = segmentation_target(np.array([[chair, lamp]], np.uint8))
+    assert classes.dtype == np.int64 and classes.tolist() == [[chair - 1, lamp - 1]]
+    assert CLASS_TO_NYU40[classes].tolist() == [[chair, lamp]] and CLASS_TO_NYU40[BACKGROUND] == 0
+
+
+def test_segmentation_and_height_losses():
+    target = torch.tensor([[[[3, 0], [7, 39]], [[0, 0], [5, 5]]]])  # (1, 2, 2, 2)
+    uniform = torch.zeros(1, 80, 2, 2)
+    assert segmentation_loss(uniform, target).item() == pytest.approx(2 * math.log(40))
+    sure = torch.full((1, 2, 40, 2, 2), -30.0)
+    sure.scatter_(2, target.unsqueeze(2), 30.0)
+    assert segmentation_loss(sure.reshape(1, 80, 2, 2), target).item() < 1e-6
+
+    height = torch.tensor([[[1.0, torch.nan], [0.5, torch.nan]]])
+    pred = torch.tensor([[[[1.5, 99.0], [0.0, -99.0]]]])
+    assert height_loss(pred, height).item() == pytest.approx(0.5)
+
+
+def test_masked_layers_empty_the_background():
+    depth = torch.arange(5.0).view(1, 5, 1, 1).expand(1, 5, 1, 3).clone()
+    logits = torch.zeros(1, 2, 40, 1, 3)
+    logits[0, 0, 4, 0, :2] = 1  # layer 1: an object at pixels 0 and 1
+    logits[0, 1, 6, 0, 1:] = 1  # layer 3: an object at pixels 1 and 2 (2 has no layer 1)
+    out = masked_layers(depth, logits.reshape(1, 80, 1, 3))[0, :, 0]
+    finite = torch.isfinite(out)
+    assert finite.tolist() == [[True, True, False], [True, True, False], [False, True, False],
+                               [False, True, False], [True, True, True]]
+
+
+# -------------------------------------------------------------------------- networks
+
+
+@pytest.mark.parametrize("hw", [(48, 64), (30, 41)])
+def test_frontal_nets_keep_the_image_size(hw):
+    x = torch.randn(2, 3, *hw)
+    depth = FrontalDepthNet(DEPTH_NET.scaled(TINY))(x)
+    assert depth.prediction.shape == (2, 5, *hw)
+    assert depth.features.shape == (2, round(48 * TINY), *hw)
+    seg = FrontalSegNet(SEG_NET.scaled(TINY))(x)
+    assert seg.prediction.shape == (2, 80, *hw) and seg.features.shape == (2, round(64 * TINY), *hw)
+    cam = CameraProposalNet(depth.features.shape[1], depth.encoding.shape[1])
+    assert cam(depth.features, depth.encoding).shape == (2, 3)
+
+
+def test_overhead_net_takes_232_channels_at_full_width():
+    net = OverheadNet(232, 40)
+    assert net.trunk.encoders[0][0].in_channels == 232
+    assert net(torch.randn(1, 232, 20, 20)).shape == (1, 40, 20, 20)
+
+
+# --------------------------------------------------------------------------- dataset
+
+
+def test_normalisation_and_house_split():
+    mean = np.broadcast_to(np.array(RGB_MEAN, np.float32), (2, 2, 3))
+    np.testing.assert_allclose(normalize_rgb(mean), 0, atol=1e-6)
+    assert normalize_rgb(np.zeros((2, 3, 3), np.uint8)).shape == (3, 2, 3)
+
+    ids = [f"h{i}" for i in range(20)] * 3
+    split = split_houses(ids, SplitConfig(0.1, 0.2, seed=1))
+    assert [len(split[s]) for s in ("train", "val", "test")] == [14, 2, 4]
+    assert sorted(sum(split.values(), [])) == sorted(set(ids))
+    assert split == split_houses(list(reversed(ids)), SplitConfig(0.1, 0.2, seed=1))
+    assert split != split_houses(ids, SplitConfig(0.1, 0.2, seed=2))
+
+
+def test_dataset_reads_lazily_and_works_with_workers(store):
+    index = index_stores([store, store])
+    assert len(index) == 12 and index.shapes == {"H": 48, "W": 64, "Ho": 32, "Wo": 32}
+    split = split_houses(index.house, SplitConfig(0.34, 0.0))
+    train_index, val_index = index.subset(split["train"]), index.subset(split["val"])
+    assert not set(train_index.house) & set(val_index.house) and len(train_index) + len(val_index) == 12
+
+    fields = ("rgb", "depth", "seg", "overhead_height", "overhead_seg", "camera")
+    ds = StoreDataset(index, fields)
+    s = ds[0]
+    assert s["rgb"].shape == (3, 48, 64) and s["rgb"].dtype == torch.float32
+    assert s["depth"].shape == (5, 48, 64) and s["seg"].shape == (2, 48, 64) and s["seg"].dtype == torch.int64
+    assert s["overhead_height"].shape == (32, 32) and s["overhead_seg"].shape == (32, 32)
+    assert s["K"].shape == (3, 3) and s["overhead_params"].shape == (5,)
+    assert int(s["seg"].max()) < 40 and (s["seg"] != BACKGROUND).any()
+
+    from sceneforge.store import open_store
+
+    raw = open_store(store).view(int(index.view[0]))
+    floor_only = np.isnan(raw["overhead_height"]) & np.isfinite(raw["overhead_depth"][4])
+    assert floor_only.any()
+    np.testing.assert_array_equal(s["overhead_height"].numpy()[floor_only], 0.0)
+    nothing = np.isnan(raw["overhead_height"]) & ~floor_only
+    assert np.isnan(s["overhead_height"].numpy()[nothing]).all()
+    bare = StoreDataset(index, ("overhead_height",), floor_as_zero=False)[0]["overhead_height"].numpy()
+    np.testing.assert_array_equal(np.isnan(bare), np.isnan(raw["overhead_height"]))
+
+    pickle.loads(pickle.dumps(ds))  # no zarr handle travels to workers
+    serial = list(torch.utils.data.DataLoader(ds, batch_size=4))
+    parallel = list(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2))
+    for a, b in zip(serial, parallel):
+        for key in a:
+            torch.testing.assert_close(a[key], b[key], equal_nan=True)
+
+
+# -------------------------------------------------------------------------- training
+
+
+@pytest.mark.parametrize("stage", ["depth", "seg", "overhead", "camera"])
+def test_every_stage_trains_two_steps_on_cpu(stage, store, frontal_runs, tmp_path):
+    kw = {}
+    if stage in ("overhead", "camera"):
+        kw["depth_run"] = frontal_runs["depth"]
+    if stage == "overhead":
+        kw["seg_run"] = frontal_runs["seg"]
+    config = small_config(stage, store, **kw)
+    run = tmp_path / stage
+    result = train(config, run, device="auto", tensorboard=False)
+    assert result.steps == 2 and math.isfinite(result.train_loss)
+    rows = read_metrics(run / "metrics.csv")
+    assert [int(r["step"]) for r in rows] == [1, 2] and all(float(r["loss"]) > 0 for r in rows)
+    saved = read_config(run)
+    assert saved == TrainConfig.from_dict(json.loads((run / "config.json").read_text()))
+    assert saved.stage == stage and saved.eft.resolution == 32
+    assert json.loads((run / "split.json").read_text())["train"]["views"] == 6
+    assert (run / "loss_curve.png").stat().st_size > 1000
+    _, nets = load_run(run)
+    assert all(not n.training for n in nets.values())
+    if stage == "overhead":
+        assert {"height_l1", "seg_ce"} <= set(rows[0]) and float(rows[0]["seg_ce"]) > 0
+
+
+def test_resume_continues_exactly(store, tmp_path):
+    opts = dict(device="cpu", tensorboard=False)
+    whole = train(small_config("depth", store, max_steps=4), tmp_path / "whole", **opts)
+    first = train(small_config("depth", store, max_steps=2), tmp_path / "split", **opts)
+    with pytest.raises(SceneforgeError, match="already holds a run"):
+        train(small_config("depth", store, max_steps=4), tmp_path / "split", **opts)
+    with pytest.raises(SceneforgeError, match="different config"):
+        train(small_config("depth", store, max_steps=4, lr=1e-3), tmp_path / "split", resume=True, **opts)
+    second = train(small_config("depth", store, max_steps=4), tmp_path / "split", resume=True, **opts)
+    assert (first.steps, second.steps, whole.steps) == (2, 4, 4)
+    assert [int(r["step"]) for r in read_metrics(tmp_path / "split" / "metrics.csv")] == [1, 2, 3, 4]
+    a, b = load_run(tmp_path / "whole")[1]["depth"], load_run(tmp_path / "split")[1]["depth"]
+    for (name, pa), pb in zip(a.state_dict().items(), b.state_dict().values()):
+        torch.testing.assert_close(pa, pb, msg=name)
+
+
+def test_missing_frozen_run_is_an_expected_error(store, tmp_path):
+    with pytest.raises(SceneforgeError, match="not a training run"):
+        nope = str(tmp_path / "nope")
+        train(small_config("overhead", store, depth_run=nope, seg_run=nope), tmp_path / "o", device="cpu")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_depth_net_overfits_four_views(store, tmp_path):
+    # one house held out for validation leaves 4 views: every step sees all of them
+    config = small_config("depth", store, batch_size=4, epochs=60, max_steps=None, lr=2e-3,
+                          split=SplitConfig(0.34, 0.0))
+    result = train(config, tmp_path / "overfit", device="cpu", tensorboard=False)
+    rows = [r for r in read_metrics(tmp_path / "overfit" / "metrics.csv") if r["split"] == "train"]
+    assert json.loads((tmp_path / "overfit" / "split.json").read_text())["train"]["views"] == 4
+    losses = [float(r["loss"]) for r in rows]
+    assert len(losses) == 60 and result.epochs == 60
+    assert np.mean(losses[-5:]) <= losses[0] / 10, (losses[0], losses[-5:])
+    val = [r for r in read_metrics(tmp_path / "overfit" / "metrics.csv") if r["split"] == "val"]
+    assert len(val) == 60 and all(math.isfinite(float(r["loss"])) for r in val)
+
+
+# ------------------------------------------------------------------------- predicting
+
+
+def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
+    from sceneforge.store import open_store
+
+    run = tmp_path / "overhead"
+    train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
+                       max_steps=1), run, device="cpu", tensorboard=False)
+    out = tmp_path / "pred.zarr"
+    summary = predict(run, store, str(out), device="cpu", batch_size=4)
+    assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
+    pred, truth = open_store(str(out)), open_store(store)
+    assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
+    for i in range(6):
+        p, t = pred.view(i), truth.view(i)
+        assert p["depth"].shape == t["depth"].shape and p["overhead_height"].shape == (32, 32)
+        assert np.isfinite(p["depth"][4]).all()
+        no_d1 = ~np.isfinite(p["depth"][0])
+        assert (p["category"][0][no_d1] == 0).all() and (p["category"][2] == 0).all()
+        with np.errstate(invalid="ignore"):
+            assert not (p["overhead_height"] <= 0.05).any()
+        for name in ("K", "cam_to_world", "overhead_cam_to_world", "overhead_params"):
+            np.testing.assert_array_equal(p[name], t[name])
+        assert str(p["house_id"]) == str(t["house_id"]) and p["camera_id"] == t["camera_id"]
+    with pytest.raises(SceneforgeError, match="exists"):
+        predict(run, store, str(out), device="cpu")
+
+    camera = tmp_path / "camera"
+    train(small_config("camera", store, depth_run=frontal_runs["depth"], max_steps=1), camera, device="cpu",
+          tensorboard=False)
+    summary = predict(run, store, str(out), camera_run=camera, device="cpu", overwrite=True)
+    assert summary.stages == ("depth", "seg", "overhead", "camera")
+    p, t = open_store(str(out)).view(0), open_store(store).view(0)
+    np.testing.assert_allclose(p["overhead_params"][[2, 3]], t["overhead_params"][[2, 3]])  # tz, theta known
+    assert not np.allclose(p["overhead_params"][[0, 1, 4]], t["overhead_params"][[0, 1, 4]])
+    R = p["overhead_cam_to_world"][:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R[:, 2], [0, -1, 0])  # looks straight down
+    assert p["overhead_extent"] == pytest.approx(p["overhead_params"][4] / math.sqrt(2))
+    with pytest.raises(SceneforgeError, match="camera run"):
+        predict(run, store, str(tmp_path / "x.zarr"), camera_run=frontal_runs["depth"], device="cpu")
+
+
+def test_true_camera_parameters_place_the_true_overhead_camera(store):
+    from sceneforge.store import open_store
+
+    s = open_store(store)
+    get = lambda name: np.asarray(s.array(name)[:])  # noqa: E731
+    params = get("overhead_params")
+    pose, extent, out = proposed_overhead_cameras(get("K"), get("cam_to_world"), (48, 64),
+                                                  get("overhead_cam_to_world"), params, params[:, [0, 1, 4]])
+    np.testing.assert_allclose(pose, get("overhead_cam_to_world"), atol=1e-9)
+    np.testing.assert_allclose(extent, get("overhead_extent"), rtol=1e-9)
+    np.testing.assert_allclose(out, params, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------- CLI
+
+
+def test_cli_train_and_predict(store, frontal_runs, tmp_path):
+    import click
+    from click.testing import CliRunner
+    from sceneforge.cli.main import LazyGroup
+
+    @click.group(cls=LazyGroup, lazy={"train": "train:train", "predict": "train:predict"})
+    def cli():
+        pass
+
+    runner = CliRunner()
+    run = tmp_path / "cam"
+    args = ["train", store, "--stage", "camera", "--run", str(run), "--depth-run", frontal_runs["depth"],
+            "--max-steps", "2", "--batch-size", "3", "--width", str(TINY), "--val-fraction", "0",
+            "--test-fraction", "0", "--device", "cpu", "--no-tensorboard"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert "2 steps" in " ".join(result.output.split()) and read_config(run).stage == "camera"
+    again = runner.invoke(cli, args)
+    assert again.exit_code == 1 and "already holds a run" in again.output and "Traceback" not in again.output
+
+    out = str(tmp_path / "p.zarr")
+    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out, "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert "6 of 6 views predicted (depth)" in " ".join(result.output.split())
