@@ -9,6 +9,7 @@ import click
 from click.core import ParameterSource
 
 from .options import house_options
+from .progress import RichProgress, progress_bar
 
 #: house option parameter → its field of the config's ``houses`` section
 _HOUSE_FIELDS = {"fmt": "format", "strict": "strict", "scale": "scale", "up_axis": "up_axis",
@@ -22,41 +23,6 @@ def _resolution(ctx, param, value):
     if not match or not all(int(g) > 0 for g in match.groups()):
         raise click.BadParameter(f"expected WIDTHxHEIGHT such as 320x240, got {value!r}")
     return int(match.group(1)), int(match.group(2))
-
-
-class _RichProgress:
-    """Progress of a run on a rich bar: done/total, rate and time left."""
-
-    def __init__(self, bar):
-        self.bar, self.task = bar, None
-
-    def start(self, step: str, total: int, unit: str, done: int = 0) -> None:
-        if self.task is not None:
-            self.bar.update(self.task, visible=False)
-        self.task = self.bar.add_task(step, total=total, completed=done, unit=unit)
-
-    def advance(self, n: int) -> None:
-        self.bar.advance(self.task, n)
-
-
-def _progress_bar(console):
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        ProgressColumn,
-        TextColumn,
-        TimeRemainingColumn,
-    )
-    from rich.text import Text
-
-    class Rate(ProgressColumn):
-        def render(self, task):
-            speed = task.finished_speed or task.speed
-            return Text("" if speed is None else f"{speed:.1f} {task.fields['unit']}/s")
-
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), Rate(),
-                    TextColumn("ETA"), TimeRemainingColumn(), console=console)
 
 
 @click.command()
@@ -123,9 +89,9 @@ def render(houses, out, load_options, config_file, views_per_house, cameras_dir,
     config = load_config(config_file, overrides)
 
     console = Console(highlight=False, stderr=True, soft_wrap=True)
-    with _progress_bar(console) as bar:
+    with progress_bar(console) as bar:
         summary = render_dataset(houses, out, config, workers=workers, scheduler=scheduler, overwrite=overwrite,
-                                 progress=_RichProgress(bar))
+                                 progress=RichProgress(bar))
     if summary.already_complete:
         console.print(f"{summary.path}: already complete ({summary.views} views); nothing to do")
     else:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .render import _progress_bar, _RichProgress
+from .progress import RichProgress, progress_bar
 
 STAGES = ("depth", "seg", "overhead", "camera")
 
@@ -136,8 +136,8 @@ def predict(run, store, out, camera_run, batch_size, device, workers, overwrite)
     from sceneforge.learn.predict import predict as run_prediction
 
     console = Console(highlight=False, stderr=True)
-    with _progress_bar(console) as bar:
+    with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=camera_run, batch_size=batch_size, device=device,
-                                 workers=workers, overwrite=overwrite, progress=_RichProgress(bar))
+                                 workers=workers, overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "
                   f"({', '.join(summary.stages)}) in {summary.seconds:.1f} s")

@@ -103,7 +103,7 @@ class DatasetConfig:
 
     def to_dict(self) -> dict:
         """The resolved config as JSON-ready data (what the store saves)."""
-        return _to_dict(self)
+        return dataclass_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict, *, what: str = "config") -> "DatasetConfig":
@@ -115,7 +115,7 @@ class DatasetConfig:
 
         schemas.validate_or_raise(data, "config", what=what)
         try:
-            return _from_dict(cls, data)
+            return dataclass_from_dict(cls, data)
         except ValueError as e:
             raise SceneforgeError(f"{what}: {e}") from None
 
@@ -148,7 +148,8 @@ def _merge(base: dict, update: dict) -> dict:
     return out
 
 
-def _to_dict(obj) -> dict:
+def dataclass_to_dict(obj) -> dict:
+    """A (nested) config dataclass as plain JSON-ready data, derived fields left out."""
     skip = _DERIVED.get(type(obj), frozenset())
     out = {}
     for f in fields(obj):
@@ -156,7 +157,7 @@ def _to_dict(obj) -> dict:
             continue
         value = getattr(obj, f.name)
         if is_dataclass(value):
-            out[f.name] = _to_dict(value)
+            out[f.name] = dataclass_to_dict(value)
         elif isinstance(value, tuple):
             out[f.name] = list(value)
         else:
@@ -164,7 +165,8 @@ def _to_dict(obj) -> dict:
     return out
 
 
-def _from_dict(cls, data: dict):
+def dataclass_from_dict(cls, data: dict):
+    """The config dataclass ``cls`` built from :func:`dataclass_to_dict` output (nested)."""
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for f in fields(cls):
@@ -181,7 +183,7 @@ def _coerce(hint, value):
     if value is None:
         return None
     if is_dataclass(hint):
-        return _from_dict(hint, value)
+        return dataclass_from_dict(hint, value)
     if origin in (typing.Union, types.UnionType):
         (inner,) = [a for a in args if a is not type(None)]
         return _coerce(inner, value)

@@ -125,16 +125,16 @@ class TrainConfig:
         object.__setattr__(self, "stores", tuple(str(s) for s in self.stores))
 
     def to_dict(self) -> dict:
-        from sceneforge.config import _to_dict
+        from sceneforge.config import dataclass_to_dict
 
-        return _to_dict(self)
+        return dataclass_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict, *, what: str = "train config") -> "TrainConfig":
-        from sceneforge.config import _from_dict
+        from sceneforge.config import dataclass_from_dict
 
         try:
-            return _from_dict(cls, data)
+            return dataclass_from_dict(cls, data)
         except (TypeError, ValueError) as e:
             raise SceneforgeError(f"{what}: {e}") from None
 
