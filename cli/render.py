@@ -100,7 +100,8 @@ def render(houses, out, load_options, config_file, views_per_house, cameras_dir,
                       f"({summary.shards_run} written now) in {summary.seconds:.1f} s ({rate:.1f} views/s)")
     for f in summary.failures:
         where = f"view {f['view']}" if f.get("view") is not None else f["stage"]
-        console.print(f"[red]failed: house {f['house']} ({where}): {f['reason']}[/red]")
+        reason = f["reason"].removeprefix(f"house {f['house']}: ")  # load errors name the house too
+        console.print(f"[red]failed: house {f['house']} ({where}): {reason}[/red]")
     if summary.failed_houses:
         console.print(f"[red]{len(summary.failed_houses)} houses failed[/red] (failure log: the store's "
                       "`failures` attribute)")
