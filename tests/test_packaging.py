@@ -24,6 +24,10 @@ def wheel(tmp_path_factory) -> Path:
 
 def test_wheel_contents(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
+    # every module of the source tree ships (pyproject lists packages explicitly)
+    for folder, prefix in ((ROOT / "sceneforge", "sceneforge"), (ROOT / "cli", "sceneforge/cli")):
+        for module in folder.rglob("*.py"):
+            assert f"{prefix}/{module.relative_to(folder).as_posix()}" in names, module
     for needed in ("sceneforge/cli/main.py", "sceneforge/schemas/house.schema.json",
                    "sceneforge/data/name_patterns.json"):
         assert needed in names
