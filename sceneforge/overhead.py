@@ -539,20 +539,6 @@ def overhead_instances(house: "House", config: OverheadConfig | None = None) -> 
     return ~_class_mask(house, config.truth_excluded) & (~envelope | (category == FLOOR))
 
 
-def overhead_keep(house: "House", hits, config: OverheadConfig | None = None) -> np.ndarray:
-    """(k,) bool: which hits of straight-down rays count for the overhead ground truth.
-
-    Dropped: instances :func:`overhead_instances` leaves out, and floor hits closer than
-    ``floor_clearance`` to the camera.
-    """
-    config = config or OverheadConfig()
-    floor = instance_labels(house)[0] == FLOOR
-    inst = np.asarray(hits.instance, dtype=np.int64)
-    keep = overhead_instances(house, config)[inst]
-    keep &= ~(floor[inst] & (np.asarray(hits.t) < config.floor_clearance))
-    return keep
-
-
 def overhead_truth(
     house: "House", camera: OverheadCamera, tracer, config: OverheadConfig | None = None
 ) -> OverheadTruth:
@@ -564,11 +550,12 @@ def overhead_truth(
     origins, directions, depth_scale = camera.rays()
     category, envelope = instance_labels(house)
     seen = overhead_instances(house, config)
-    # the first floor beyond the clearance closes each ray, like the envelope in a frontal view
+    # The query itself applies SPEC §7's filters: only the instances an overhead view sees,
+    # and the first floor beyond the clearance closes each ray as the envelope does in a
+    # frontal view (tests/test_view.py checks this against tracing every hit and filtering).
     hits = tracer.frontal_hits(origins, directions, objects=seen & ~envelope, envelope=seen & envelope,
                                envelope_near=config.floor_clearance)
-    layers = layers_from_hits(hits, depth_scale, category, envelope, (camera.height, camera.width),
-                              keep=overhead_keep(house, hits, config))
+    layers = layers_from_hits(hits, depth_scale, category, envelope, (camera.height, camera.width))
     top = float(camera.cam_to_world[1, 3])
     height = (top - layers.depth[0].astype(np.float64) - camera.floor_y).astype(np.float32)
     first = np.isfinite(layers.depth[0])

@@ -9,7 +9,7 @@ import pytest
 from sceneforge.cameras import CameraSamplerConfig, sample_cameras
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.layers import instance_labels, layers_from_hits
-from sceneforge.overhead import OverheadConfig, overhead_keep, overhead_truth
+from sceneforge.overhead import FLOOR, OverheadConfig, overhead_instances, overhead_truth
 from sceneforge.raytrace import HouseTracer
 from sceneforge.view import ViewConfig, compute_view
 
@@ -32,6 +32,14 @@ def first_view(house, tracer):
         cams, _ = sample_cameras(house, 1, np.random.default_rng(0), loose, tracer)
     assert cams, f"no camera could be sampled in {house.id}"
     return cams[0]
+
+
+def overhead_keep(house, hits, config):
+    """The slow reference of SPEC §7's filters on every hit of straight-down rays: drop the
+    instances an overhead view does not see, and floor hits within the clearance."""
+    floor = instance_labels(house)[0] == FLOOR
+    inst = np.asarray(hits.instance, dtype=np.int64)
+    return overhead_instances(house, config)[inst] & ~(floor[inst] & (hits.t < config.floor_clearance))
 
 
 def same(a, b):
