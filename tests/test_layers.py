@@ -9,7 +9,7 @@ import trimesh
 
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import NYU40_IDS, tol
-from sceneforge.houses import House, load, make_instance
+from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
 from sceneforge.layers import first_hit_normals, frontal_layers, instance_labels, layers_from_hits
 from sceneforge.raytrace import Hits, HouseTracer
 
@@ -358,11 +358,9 @@ def test_layers_from_hits_checks_its_inputs():
 
 
 def toy_houses():
-    toy = pytest.importorskip("sceneforge.houses.toy", reason="toy-house generator not available")
-    folders = sorted(p for p in toy.bundle_dir().iterdir() if p.is_dir())
-    if not folders:
-        pytest.skip("no bundled toy houses in sceneforge/data/toy_houses")
-    return [load(p) for p in folders]
+    houses = [load(s) for s in discover(BUNDLED_TOY)]
+    assert len(houses) == 3
+    return houses
 
 
 def test_engines_agree_on_every_pixel_of_bundled_toy_houses():

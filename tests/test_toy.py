@@ -12,12 +12,12 @@ from click.testing import CliRunner
 from sceneforge.cli.toy_houses import toy_houses
 
 from sceneforge.errors import SceneforgeError
+from sceneforge.houses import bundled_toy_dir
 from sceneforge.houses.native import load_house, write_house
 from sceneforge.houses.toy import (
     BUNDLE_COUNT,
     BUNDLE_SEED,
     build_toy_house,
-    bundle_dir,
     generate_house,
     house_seed,
     toy_house_id,
@@ -37,7 +37,7 @@ def fresh(index: int):
 
 @lru_cache(maxsize=None)
 def bundled(index: int):
-    return load_house(bundle_dir() / BUNDLED_IDS[index])
+    return load_house(bundled_toy_dir() / BUNDLED_IDS[index])
 
 
 def files(folder):
@@ -76,13 +76,13 @@ def test_write_toy_houses_ids_and_derived_seeds(tmp_path):
 
 
 def test_bundled_houses_equal_a_fresh_generation(tmp_path):
-    assert sorted(p.name for p in bundle_dir().iterdir() if p.is_dir()) == BUNDLED_IDS
+    assert sorted(p.name for p in bundled_toy_dir().iterdir() if p.is_dir()) == BUNDLED_IDS
     write_bundle(tmp_path)
     for house_id in BUNDLED_IDS:
-        assert files(tmp_path / house_id) == files(bundle_dir() / house_id), (
+        assert files(tmp_path / house_id) == files(bundled_toy_dir() / house_id), (
             f"{house_id} is stale: run `python -m sceneforge.houses.toy --bundle`"
         )
-    total = sum(p.stat().st_size for p in bundle_dir().rglob("*") if p.is_file())
+    total = sum(p.stat().st_size for p in bundled_toy_dir().rglob("*") if p.is_file())
     assert total < 1.5e6
 
 

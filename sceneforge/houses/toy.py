@@ -34,10 +34,11 @@ import numpy as np
 
 from ..conventions import NYU40_IDS
 from ..errors import SceneforgeError
+from . import bundled_toy_dir
 from .model import House, Level, Material, Room, make_instance
 
 __all__ = [
-    "BUNDLE_COUNT", "BUNDLE_SEED", "Opening", "ToyHouse", "build_toy_house", "bundle_dir",
+    "BUNDLE_COUNT", "BUNDLE_SEED", "Opening", "ToyHouse", "build_toy_house",
     "generate_house", "house_seed", "toy_house_id", "write_bundle", "write_toy_houses",
 ]
 
@@ -1071,16 +1072,9 @@ def write_toy_houses(out: str | Path, count: int, seed: int, progress=None) -> l
     return folders
 
 
-def bundle_dir() -> Path:
-    """Folder of the toy houses shipped with the package."""
-    from .categories import data_file
-
-    return data_file("toy_houses")
-
-
 def write_bundle(out: str | Path | None = None) -> list[Path]:
     """(Re)write the bundled toy houses (into the package unless ``out`` is given)."""
-    return write_toy_houses(out or bundle_dir(), BUNDLE_COUNT, BUNDLE_SEED)
+    return write_toy_houses(out or bundled_toy_dir(), BUNDLE_COUNT, BUNDLE_SEED)
 
 
 if __name__ == "__main__":
