@@ -40,7 +40,6 @@ NYU40_ALIASES: dict[str, int] = {
     "none": 0,
     "": 0,
 }
-VOID = 0
 
 #: Room-envelope categories of the paper's appendix. ``fireplace`` and ``roof`` are not
 #: NYU40 names: they are matched against an instance's source category (its ``label``).

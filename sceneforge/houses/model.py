@@ -106,9 +106,6 @@ class House:
         v = np.concatenate([i.vertices for i in self.instances])
         return np.stack([v.min(0), v.max(0)])
 
-    def room(self, room_id: str) -> Room | None:
-        return next((r for r in self.rooms if r.id == room_id), None)
-
     def check_not_empty(self) -> "House":
         """Raise :class:`HouseError` when no instance survived loading."""
         if not self.instances:
