@@ -22,15 +22,25 @@ def box_instance(house: House, name: str, category: int, extents, center, room_i
                          vertices=b.vertices, faces=b.faces)
 
 
+def box_room(name: str, size: float, height: float, room_type: str = "room") -> House:
+    """A size × height × size m room around the origin, floor top at y = 0: floor, ceiling
+    and four walls, each a closed 0.1 m thick box (instances floor, ceiling, wall0..wall3)."""
+    h = House(id=name, instances=[], rooms=[Room("r0", room_type, 0)])
+    half, t = size / 2, 0.1
+    box_instance(h, "floor", 2, (size, t, size), (0, -t / 2, 0))
+    box_instance(h, "ceiling", 22, (size, t, size), (0, height + t / 2, 0))
+    for i, (ext, c) in enumerate([((t, height, size), (-half - t / 2, height / 2, 0)),
+                                  ((t, height, size), (half + t / 2, height / 2, 0)),
+                                  ((size, height, t), (0, height / 2, -half - t / 2)),
+                                  ((size, height, t), (0, height / 2, half + t / 2))]):
+        box_instance(h, f"wall{i}", 1, ext, c)
+    return h
+
+
 @pytest.fixture
 def small_house() -> House:
     """A 4 × 3 × 4 m room (floor, ceiling, four walls) with a table, a chair and a cup."""
-    h = House(id="small", instances=[], rooms=[Room("r0", "kitchen", 0)])
-    box_instance(h, "floor", 2, (4, 0.1, 4), (0, -0.05, 0))
-    box_instance(h, "ceiling", 22, (4, 0.1, 4), (0, 3.05, 0))
-    for i, (ext, c) in enumerate([((0.1, 3, 4), (-2.05, 1.5, 0)), ((0.1, 3, 4), (2.05, 1.5, 0)),
-                                  ((4, 3, 0.1), (0, 1.5, -2.05)), ((4, 3, 0.1), (0, 1.5, 2.05))]):
-        box_instance(h, f"wall{i}", 1, ext, c)
+    h = box_room("small", size=4.0, height=3.0, room_type="kitchen")
     box_instance(h, "table", 7, (1.2, 0.05, 0.8), (0, 0.725, 0))
     box_instance(h, "chair", 5, (0.45, 0.45, 0.45), (0, 0.225, 0.7))
     box_instance(h, "cup", 40, (0.08, 0.1, 0.08), (0.2, 0.8, 0.1), label="cup")

@@ -12,7 +12,6 @@ from sceneforge.cli.main import cli
 
 from sceneforge.cameras import look_at_camera
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses import House, Room
 from sceneforge.houses.native import write_house
 from sceneforge.layers import frontal_layers
 from sceneforge.overhead import (
@@ -33,7 +32,7 @@ from sceneforge.overhead import (
 )
 from sceneforge.raytrace import HouseTracer
 
-from .conftest import box_instance
+from .conftest import box_instance, box_room
 
 CONFIG = OverheadConfig()
 
@@ -232,12 +231,7 @@ def test_camera_looking_straight_down_has_no_gravity_frame():
 def room_with_a_box():
     """6 × 2.5 × 6 m room around the origin; a 1 × 0.8 × 1 m box at (0, 0.4, -1.5), a
     chandelier-labelled lamp hanging over it. Floor top at y = 0."""
-    h = House(id="box_room", instances=[], rooms=[Room("r0", "living", 0)])
-    box_instance(h, "floor", 2, (6, 0.1, 6), (0, -0.05, 0))
-    box_instance(h, "ceiling", 22, (6, 0.1, 6), (0, 2.55, 0))
-    for i, (ext, c) in enumerate([((0.1, 2.5, 6), (-3.05, 1.25, 0)), ((0.1, 2.5, 6), (3.05, 1.25, 0)),
-                                  ((6, 2.5, 0.1), (0, 1.25, -3.05)), ((6, 2.5, 0.1), (0, 1.25, 3.05))]):
-        box_instance(h, f"wall{i}", 1, ext, c)
+    h = box_room("box_room", size=6.0, height=2.5, room_type="living")
     box_instance(h, "box", 29, (1.0, 0.8, 1.0), (0, 0.4, -1.5))
     box_instance(h, "lamp", 35, (0.2, 0.1, 0.2), (0.0, 1.3, -1.5), label="chandelier")
     return h

@@ -35,7 +35,7 @@ from sceneforge.layers import frontal_layers
 from sceneforge.raytrace import HouseTracer
 from sceneforge.render import GAMMA, RenderConfig, Renderer, room_lights, shade_house
 
-from .conftest import BREAKFAST_ROOM, box_instance
+from .conftest import BREAKFAST_ROOM, box_instance, box_room
 
 pytest.importorskip("pyrender", reason="pyrender is not installed (pip install 'sceneforge[render]')")
 
@@ -58,13 +58,7 @@ def renderer():
 
 def boxed_room(name="room") -> House:
     """A 4 × 3 × 4 m room of grey envelope boxes around the origin, floor at y = 0."""
-    h = House(id=name, instances=[], rooms=[Room("r0", "room", 0)])
-    box_instance(h, "floor", 2, (4, 0.1, 4), (0, -0.05, 0))
-    box_instance(h, "ceiling", 22, (4, 0.1, 4), (0, 3.05, 0))
-    for i, (ext, c) in enumerate([((0.1, 3, 4), (-2.05, 1.5, 0)), ((0.1, 3, 4), (2.05, 1.5, 0)),
-                                  ((4, 3, 0.1), (0, 1.5, -2.05)), ((4, 3, 0.1), (0, 1.5, 2.05))]):
-        box_instance(h, f"wall{i}", 1, ext, c)
-    return h
+    return box_room(name, size=4.0, height=3.0)
 
 
 # --------------------------------------------------------------------------- alignment
