@@ -114,26 +114,52 @@ def frustum_planes(camera: "Camera", near: float = ViewMeshConfig.near) -> np.nd
 def triangle_areas(triangles: np.ndarray) -> np.ndarray:
     """(m,) float64 areas of ``triangles`` (m, 3, 3)."""
     t = np.asarray(triangles, dtype=np.float64)
-    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    a, b = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    # The cross product spelled out as np.cross computes it (bit-identical), without its
+    # axis juggling and copies: clipping calls this for a few pieces many times per view.
+    c = np.empty_like(a)
+    np.multiply(a[:, 1], b[:, 2], out=c[:, 0])
+    c[:, 0] -= a[:, 2] * b[:, 1]
+    np.multiply(a[:, 2], b[:, 0], out=c[:, 1])
+    c[:, 1] -= a[:, 0] * b[:, 2]
+    np.multiply(a[:, 0], b[:, 1], out=c[:, 2])
+    c[:, 2] -= a[:, 1] * b[:, 0]
+    c *= c
+    return 0.5 * np.sqrt(np.add.reduce(c, axis=1))  # np.linalg.norm(c, axis=1), same arithmetic
 
 
-def _roll(triangles: np.ndarray, dist: np.ndarray, first: np.ndarray):
-    """Rotate each triangle's vertices (keeping the winding) so that vertex ``first`` leads."""
-    order = (first[:, None] + np.arange(3)) % 3
-    rows = np.arange(len(triangles))[:, None]
-    return triangles[rows, order], dist[rows, order]
+def _all_last(mask: np.ndarray) -> np.ndarray:
+    """``mask.all(axis=-1)`` for a short last axis: &-ing its few columns is several times
+    faster than numpy's reduction over an axis of 3 to 9 elements."""
+    out = mask[..., 0].copy()
+    for j in range(1, mask.shape[-1]):
+        out &= mask[..., j]
+    return out
+
+
+#: Row k: the vertices of a triangle rotated (keeping the winding) so that vertex k leads.
+_ROLL = np.array([[0, 1, 2], [1, 2, 0], [2, 0, 1]])
+
+
+def _roll(triangles: np.ndarray, dist: np.ndarray, rows: np.ndarray, first: np.ndarray):
+    """Triangles ``rows`` of ``triangles`` (m, 3, 3) and their ``dist`` (m, 3), each rotated
+    (keeping the winding) so that its vertex ``first`` leads, in one gather each."""
+    flat = _ROLL[first]
+    flat += 3 * rows[:, None]
+    return triangles.reshape(-1, 3)[flat], dist.ravel()[flat]
 
 
 def _cut(inside_v, inside_d, outside_v, outside_d):
     """Points where edges from an inside to an outside vertex meet the plane ``d = 0``.
 
-    Always interpolating from the inside end makes the cut point of an edge shared by two
+    ``inside_v``, ``outside_v`` (..., 3) and ``inside_d``, ``outside_d`` (...). Always
+    interpolating from the inside end makes the cut point of an edge shared by two
     triangles bit-identical in both, so welding reconnects them. A vertex that is inside
     only within the tolerance (``d < 0``) gives ``t < 0``; clamping puts the cut on the
     vertex itself and the sliver triangle it creates is dropped as degenerate.
     """
     t = np.clip(inside_d / (inside_d - outside_d), 0.0, 1.0)
-    return inside_v + t[:, None] * (outside_v - inside_v)
+    return inside_v + t[..., None] * (outside_v - inside_v)
 
 
 def clip_triangles_by_plane(
@@ -159,36 +185,43 @@ def clip_triangles_by_plane(
     """
     tris = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
     plane = np.asarray(plane, dtype=np.float64)
-    dist = tris @ plane[:3] + plane[3]
+    return _clip_by_plane(tris, tris @ plane[:3] + plane[3], tolerance)
+
+
+def _clip_by_plane(tris: np.ndarray, dist: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`clip_triangles_by_plane` given ``dist`` (m, 3), the signed distances of the
+    corners of ``tris`` (m, 3, 3) float64 to the plane. The pieces are written straight
+    into the output: kept whole triangles, then one piece per triangle with one vertex
+    inside, then the first and the second halves of the quads left of those with two."""
     inside = dist >= -tolerance
     n_in = inside.sum(axis=1)
-
     whole = np.flatnonzero(n_in == 3)
-    pieces, sources = [tris[whole]], [whole]
-
     one = np.flatnonzero(n_in == 1)
-    if len(one):
-        t, d = _roll(tris[one], dist[one], np.argmax(inside[one], axis=1))
-        b = _cut(t[:, 0], d[:, 0], t[:, 1], d[:, 1])
-        c = _cut(t[:, 0], d[:, 0], t[:, 2], d[:, 2])
-        pieces.append(np.stack([t[:, 0], b, c], axis=1))
-        sources.append(one)
-
     two = np.flatnonzero(n_in == 2)
-    if len(two):
+    w, m1, m2 = len(whole), len(one), len(two)
+    out = np.empty((w + m1 + 2 * m2, 3, 3))
+    src = np.concatenate([whole, one, two, two])
+    np.take(tris, whole, axis=0, out=out[:w])
+    if m1:
+        # Lead with the inside vertex: the kept tip is it and its edges' cuts b, c.
+        t, d = _roll(tris, dist, one, np.argmax(inside[one], axis=1))
+        tip = out[w:w + m1]
+        tip[:, 0] = t[:, 0]
+        tip[:, 1:] = _cut(t[:, :1], d[:, :1], t[:, 1:], d[:, 1:])
+    if m2:
         # Lead with the outside vertex o; the inside ones a, b follow in winding order,
         # so the kept quad is a, b, cut(b→o), cut(a→o).
-        t, d = _roll(tris[two], dist[two], np.argmin(inside[two], axis=1))
-        a, b = t[:, 1], t[:, 2]
-        pb = _cut(b, d[:, 2], t[:, 0], d[:, 0])
-        pa = _cut(a, d[:, 1], t[:, 0], d[:, 0])
-        pieces += [np.stack([a, b, pb], axis=1), np.stack([a, pb, pa], axis=1)]
-        sources += [two, two]
-
-    out = np.concatenate(pieces)
-    src = np.concatenate(sources).astype(np.int64)
-    keep = np.ones(len(out), dtype=bool)
-    keep[len(whole):] = triangle_areas(out[len(whole):]) > tol.degenerate_area  # cut pieces only
+        t, d = _roll(tris, dist, two, np.argmin(inside[two], axis=1))
+        cuts = _cut(t[:, :0:-1], d[:, :0:-1], t[:, :1], d[:, :1])  # cut(b→o), cut(a→o)
+        first, second = out[w + m1:w + m1 + m2], out[w + m1 + m2:]
+        first[:, :2] = t[:, 1:]
+        first[:, 2] = cuts[:, 0]
+        second[:, 0] = t[:, 1]
+        second[:, 1:] = cuts
+    keep = triangle_areas(out[w:]) > tol.degenerate_area  # cut pieces only
+    if keep.all():
+        return out, src
+    keep = np.concatenate([np.ones(w, dtype=bool), keep])
     return out[keep], src[keep]
 
 
@@ -214,7 +247,11 @@ def clip_triangles(
     for plane in planes:
         if not len(cut):
             break
-        cut, src = clip_triangles_by_plane(cut, plane, tolerance)
+        # A plane that every piece is inside of leaves them as they are: skip its cutting.
+        dist = cut @ plane[:3] + plane[3]
+        if (dist >= -tolerance).all():
+            continue
+        cut, src = _clip_by_plane(cut, dist, tolerance)
         source = source[src]
     return np.concatenate([tris[whole], cut]), np.concatenate([whole, source]).astype(np.int64)
 
@@ -233,10 +270,45 @@ def weld(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _unique_rows(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """np.unique(points, axis=0, return_inverse=True) for (n, 3) float64, several times
-    faster: sort rows by (x, y, z) and start a new row wherever one differs from the last."""
+    faster: rows in lexicographic (x, y, z) order, each the first of its equal rows.
+
+    np.lexsort would do it in three stable sorts, each several times slower than numpy's
+    default (vectorised) sort. Instead each coordinate is ranked among its distinct values
+    with the default sort, and the rows are sorted once by their three ranks packed into
+    one integer; ties are then whole equal rows, and the first of each is found by index.
+    """
+    n = len(points)
+    if n < 1000 or n > 2_000_000:  # sorting overhead; ranks whose product overflows int64
+        return _unique_rows_lexsort(points)
+    q = points + 0.0  # -0.0 → +0.0: equal coordinates are then equal bit for bit
+    if np.isnan(q).any():  # NaN equals nothing, not even itself
+        return _unique_rows_lexsort(points)
+    key = np.zeros(n, dtype=np.int64)
+    for column in q.T:
+        distinct, rank = np.unique(column, return_inverse=True)
+        key *= len(distinct)
+        key += rank
+    order = np.argsort(key)
+    key = key[order]
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    np.not_equal(key[1:], key[:-1], out=new[1:])
+    first = np.minimum.reduceat(order, np.flatnonzero(new))
+    inverse = np.empty(n, dtype=np.int32)
+    inverse[order] = np.cumsum(new) - 1
+    return points[first], inverse
+
+
+def _unique_rows_lexsort(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_unique_rows` by np.lexsort: sort rows by (x, y, z) and start a new row
+    wherever one differs from the last."""
     order = np.lexsort(points.T[::-1])
     rows = points[order]
-    new = np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)]
+    new = np.empty(len(points), dtype=bool)
+    new[:1] = True
+    np.not_equal(rows[1:, 0], rows[:-1, 0], out=new[1:])
+    new[1:] |= rows[1:, 1] != rows[:-1, 1]
+    new[1:] |= rows[1:, 2] != rows[:-1, 2]
     inverse = np.empty(len(points), dtype=np.int32)
     inverse[order] = np.cumsum(new) - 1
     return rows[new], inverse
@@ -248,21 +320,26 @@ def _soup(house: "House", ids, planes: np.ndarray) -> tuple[np.ndarray, np.ndarr
     Returns triangles (m, 3, 3) float64, their instance (m,) int32, their corners as indices
     (m, 3) int64 into the returned vertices (v, 3) float64 (the instances' own, stacked).
     """
-    tris, owner = [np.zeros((0, 3, 3))], [np.zeros(0, dtype=np.int32)]
-    corners, vertices = [np.zeros((0, 3), dtype=np.int64)], [np.zeros((0, 3))]
-    base = 0
-    for i in ids:
-        inst = house.instances[int(i)]
+    ids = [int(i) for i in ids]
+    instances = [house.instances[i] for i in ids]
+    if instances:
         # An instance whose every vertex is outside one plane cannot reach the frustum.
-        dist = inst.vertices @ planes[:, :3].T + planes[:, 3]
-        if (dist.max(axis=0) < -tol.clip).any():
-            continue
-        tris.append(inst.vertices[inst.faces])
-        owner.append(np.full(len(inst.faces), int(i), dtype=np.int32))
-        corners.append(inst.faces + base)
-        vertices.append(inst.vertices)
-        base += len(inst.vertices)
-    return np.concatenate(tris), np.concatenate(owner), np.concatenate(corners), np.concatenate(vertices)
+        # Per instance only its farthest reach along each plane normal; the offsets are
+        # added after the max, which is the same (rounding is monotonic).
+        reach = np.array([(inst.vertices @ planes[:, :3].T).max(axis=0) for inst in instances])
+        reach += planes[:, 3]
+        inside = ~(reach < -tol.clip).any(axis=1)
+        ids = [i for i, keep in zip(ids, inside) if keep]
+        instances = [inst for inst, keep in zip(instances, inside) if keep]
+    if not instances:
+        return np.zeros((0, 3, 3)), np.zeros(0, dtype=np.int32), np.zeros((0, 3), dtype=np.int64), np.zeros((0, 3))
+    n_faces = [len(inst.faces) for inst in instances]
+    base = np.cumsum([0] + [len(inst.vertices) for inst in instances[:-1]])
+    vertices = np.concatenate([inst.vertices for inst in instances]).astype(np.float64, copy=False)
+    corners = np.concatenate([inst.faces for inst in instances]).astype(np.int64)
+    corners += np.repeat(base, n_faces)[:, None]
+    owner = np.repeat(np.array(ids, dtype=np.int32), n_faces)
+    return vertices[corners], owner, corners, vertices
 
 
 def _weld_pieces(pieces: np.ndarray, source: np.ndarray, tris: np.ndarray, corners: np.ndarray,
@@ -276,15 +353,21 @@ def _weld_pieces(pieces: np.ndarray, source: np.ndarray, tris: np.ndarray, corne
     faces (k, 3) int32.
     """
     parent = tris[source]
-    uncut = (pieces == parent).all(axis=(1, 2))
-    index = np.empty((len(pieces), 3), dtype=np.int64)
-    index[uncut] = corners[source[uncut]]
+    index = corners[source]  # right for every uncut piece
+    uncut = _all_last((pieces == parent).reshape(-1, 9))
     table = vertices
     if not uncut.all():
-        cut = ~uncut
-        piece, inherited = pieces[cut], corners[source[cut]]
-        same = (piece[:, :, None, :] == parent[cut][:, None, :, :]).all(axis=3)  # (c, 3, 3)
-        idx = np.where(same.any(axis=2), np.take_along_axis(inherited, same.argmax(axis=2), axis=1), -1)
+        cut = np.flatnonzero(~uncut)
+        piece, parent, inherited = pieces[cut], parent[cut], index[cut]
+        # Each corner takes the first corner of its triangle it equals, if any.
+        idx = np.full(inherited.shape, -1, dtype=np.int64)
+        for k in (2, 1, 0):
+            # (== per coordinate, then &: .all over an axis of 3 is several times slower)
+            corner = parent[:, None, k]
+            same = piece[..., 0] == corner[..., 0]
+            same &= piece[..., 1] == corner[..., 1]
+            same &= piece[..., 2] == corner[..., 2]
+            np.copyto(idx, inherited[:, k:k + 1], where=same)
         fresh = idx < 0
         new_vertices, new_index = _unique_rows(piece[fresh])
         idx[fresh] = len(vertices) + new_index
@@ -296,35 +379,68 @@ def _weld_pieces(pieces: np.ndarray, source: np.ndarray, tris: np.ndarray, corne
     return table[used], renumber[index].astype(np.int32)
 
 
-def _in_front_of_envelope(uv: np.ndarray, z: np.ndarray, d5: np.ndarray, margin: float) -> np.ndarray:
-    """(...) bool: a point does not project more than ``margin`` behind ``D5`` at its pixel.
+def _envelope_limit(d5: np.ndarray, margin: float) -> np.ndarray:
+    """(H·W,) float64: the depth beyond which a point at each pixel is behind the envelope.
 
-    uv : (..., 2) pixel coordinates and z : (...) planar depth of points in the frustum.
-    Where ``D5`` is NaN the ray left the house without meeting the envelope, so there is
-    nothing to be behind and the point counts as in front (as in the reference).
+    ``D5 + margin`` where ``D5`` is finite and +inf elsewhere: where ``D5`` is NaN the ray
+    left the house without meeting the envelope, so there is nothing to be behind and the
+    point counts as in front (as in the reference). Built once per view so that each test
+    of a batch of points is a single lookup and comparison.
     """
-    h, w = d5.shape
-    # Points on the right/bottom frustum planes project onto the image border itself.
-    col = np.clip(uv[..., 0], 0, w - 1).astype(np.int64)
-    row = np.clip(uv[..., 1], 0, h - 1).astype(np.int64)
-    limit = d5[row, col].astype(np.float64) + margin
-    return ~(np.isfinite(limit) & (z > limit))
+    limit = np.asarray(d5).astype(np.float64).ravel()
+    limit += margin
+    limit[~np.isfinite(limit)] = np.inf
+    return limit
 
 
-def _bisect(triangles: np.ndarray, edge: np.ndarray) -> np.ndarray:
-    """Cut each triangle (m, 3, 3) from the midpoint of its longest edge (``edge`` (m, 3):
-    length of edge k from vertex k to k+1) to the opposite vertex, keeping the winding.
+def _project(cam: np.ndarray, out: np.ndarray, lens: tuple, limit: np.ndarray) -> None:
+    """Project camera-frame points and test them against the envelope, writing into ``out``.
 
-    Returns (2m, 3, 3): the first halves of all triangles, then the second halves.
+    cam  : (3, N) planar camera coordinates (x, y, z) of points in the frustum.
+    out  : (3, N) receives pixel ``u``, ``v`` and 1.0 where the point lies beyond
+           ``limit`` (:func:`_envelope_limit`) at its pixel, else 0.0.
+    lens : ``(fx, skew, cx, fy, cy, width, border)`` from :func:`_lens`.
+    Elementwise arithmetic only, so a point gets the same pixel however it is batched.
+    Call under ``np.errstate(divide="ignore", invalid="ignore")``.
     """
-    t, _ = _roll(triangles, edge, np.argmax(edge, axis=1))
-    m = 0.5 * (t[:, 0] + t[:, 1])
-    return np.concatenate([np.stack([t[:, 0], m, t[:, 2]], axis=1),
-                           np.stack([m, t[:, 1], t[:, 2]], axis=1)])
+    fx, skew, cx, fy, cy, width, border = lens
+    x, y, z, u, v = cam[0], cam[1], cam[2], out[0], out[1]
+    np.multiply(fx, x, out=u)
+    if skew:  # else skew · y is ±0: adding it could change only the sign of a zero u
+        u += skew * y
+    u /= z
+    u += cx
+    np.multiply(fy, y, out=v)
+    v /= z
+    v += cy
+    # Points on the right/bottom frustum planes project onto the image border itself
+    # (maximum/minimum: np.clip with the same bounds, without its overhead).
+    pixel = np.maximum(out[:2], 0.0)
+    np.minimum(pixel, border, out=pixel)
+    pixel = pixel.astype(np.int64)
+    pixel[1] *= width
+    pixel[1] += pixel[0]
+    np.greater(z, limit.take(pixel[1], mode="clip"), out=out[2])
+
+
+def _lens(camera: "Camera", shape: tuple[int, int]) -> tuple:
+    """The intrinsics :func:`_project` needs, unpacked once per view."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    h, w = shape
+    return (K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2], w,
+            np.array([[w - 1], [h - 1]], dtype=np.float64))
+
+
+#: The halves of a triangle bisected at its edge k (corner k to k+1) are (k, m, k+2) and
+#: (m, k+1, k+2), m the edge's midpoint: their corners (axis 0) for each half (axis 1) are
+#: corner (k + offset) % 3, with corner k standing in for m until it is computed.
+_HALF_OFFSET = np.array([[0, 0], [0, 1], [2, 2]])[:, :, None]
+_MOD3 = np.array([0, 1, 2, 0, 1])
 
 
 def drop_behind_envelope(
-    triangles: np.ndarray, camera: "Camera", d5: np.ndarray, config: "ViewMeshConfig"
+    triangles: np.ndarray, camera: "Camera", d5: np.ndarray, config: "ViewMeshConfig",
+    limit: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Remove what projects more than ``config.behind_envelope`` behind ``D5``.
 
@@ -336,55 +452,155 @@ def drop_behind_envelope(
 
     triangles : (m, 3, 3) float64  world, inside the frustum of ``camera``
     d5        : (H, W) float       envelope depth of the view, NaN where none
+    limit     : :func:`_envelope_limit` of ``d5``, if already at hand
     Returns the kept triangles (k, 3, 3) float64 and source (k,) int64 (input index).
     """
-    # The world triangles are bisected alongside camera-frame copies, so kept faces stay
-    # exact while each round projects only once.
+    if limit is None:
+        limit = _envelope_limit(d5, config.behind_envelope)
+    lens = _lens(camera, np.shape(d5))
     world = np.asarray(triangles, dtype=np.float64).reshape(-1, 3, 3)
     rot, centre = camera.cam_to_world[:3, :3], camera.cam_to_world[:3, 3]
-    cam = (world - centre) @ rot
-    src = np.arange(len(world), dtype=np.int64)
-    kept, kept_src = [np.zeros((0, 3, 3))], [np.zeros(0, dtype=np.int64)]
-    (fx, skew, cx), (fy, cy) = camera.K[0], camera.K[1, 1:]
+    # Every corner carries all the refinement needs in one column of ``state`` (field,
+    # corner, face): world (0-2) and camera (3-5) coordinates, pixel (6-7) and whether it
+    # is behind the envelope (8); fields first keeps each pass over one field contiguous.
+    # The world triangles are bisected alongside the camera-frame copies, so kept faces
+    # stay exact, and a corner is projected only when it is made: a midpoint is computed
+    # as 0.5 · (corner k + corner k+1) like every sample point, and projection is
+    # elementwise, so it is bit-identical however it is batched.
+    state = np.empty((9, 3, len(world)))
+    state[:3] = world.transpose(2, 1, 0)
+    state[3:6] = ((world - centre) @ rot).transpose(2, 1, 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kept, kept_src = _refine(state, lens, limit, config.max_edge_pixels)
+    return np.ascontiguousarray(np.concatenate(kept, axis=2).transpose(2, 1, 0)), np.concatenate(kept_src)
 
-    def front(points):
-        z = points[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = np.stack([(fx * points[..., 0] + skew * points[..., 1]) / z + cx, fy * points[..., 1] / z + cy], -1)
-        return _in_front_of_envelope(uv, z, d5, config.behind_envelope), uv
 
-    while len(world):
-        vertex_ok, uv = front(cam)
-        ok = vertex_ok.all(axis=1)
-        kept.append(world[ok])
-        kept_src.append(src[ok])
-        if config.max_edge_pixels is None or ok.all():
+def _refine(state: np.ndarray, lens: tuple, limit: np.ndarray, max_edge: float | None):
+    """The loop of :func:`drop_behind_envelope` on ``state`` (9, 3, m): lists of the kept
+    world triangles (3, 3, k) (field, corner, face) and of their sources (k,) int64.
+
+    A dozen rounds over a few hundred to a few thousand faces each: the cost is about half
+    the number of numpy calls per round and half the data they move, so each round makes
+    few calls, builds the next round's faces with a single gather and projects each new
+    point once.
+    """
+    _project(state[3:6].reshape(3, -1), state[6:].reshape(3, -1), lens, limit)
+    src = np.arange(state.shape[2], dtype=np.int64)
+    kept, kept_src = [np.zeros((3, 3, 0))], [np.zeros(0, dtype=np.int64)]
+    while state.shape[2]:
+        n = state.shape[2]
+        hidden = state[8]
+        failed = hidden.any(axis=0)
+        if not failed.any():
+            kept.append(state[:3])
+            kept_src.append(src)
             break
-        world, cam, src, uv, vertex_ok = world[~ok], cam[~ok], src[~ok], uv[~ok], vertex_ok[~ok]
+        ok = ~failed
+        kept.append(np.compress(ok, state[:3], axis=2))
+        kept_src.append(src[ok])
+        if max_edge is None:
+            break
+        # Pixel length of edge k, from corner k to corner k+1. A face whose pixel is NaN
+        # (see "gone" below) has NaN edges and so is never cut again.
+        uv = state[6:8]
+        step = np.empty_like(uv)
+        np.subtract(uv[:, 1:], uv[:, :2], out=step[:, :2])
+        np.subtract(uv[:, 0], uv[:, 2], out=step[:, 2])
+        step *= step
+        edge = np.sqrt(np.add(step[0], step[1], out=step[0]), out=step[0])
+        longest = edge.max(axis=0)
+        failed &= longest > max_edge
+        cut = np.flatnonzero(failed)
+        c = len(cut)
+        if not c:
+            break
+        # The first longest edge (np.argmax over the three, without its slow strided pass).
+        not0 = edge[0] != longest
+        k = not0.astype(np.int64)
+        not0 &= edge[1] != longest
+        k += not0
+        # Both halves of every face to cut, all first halves, then all second halves, in one
+        # gather; then the midpoint m of edge k (a, b) fills the first half's corner 1 and
+        # the second half's corner 0. m = 0.5 · (a + b) exactly as the sample points below.
+        corner = k[cut] + _HALF_OFFSET
+        corner = (_MOD3 * n).take(corner)
+        corner += cut
+        halves = np.take(state.reshape(9, -1), corner.reshape(3, -1), axis=1, mode="clip")  # (9, 3, 2c)
+        mid = halves[:, 1, :c]
+        np.add(halves[:6, 0, :c], halves[:6, 1, c:], out=mid[:6])
+        mid[:6] *= 0.5
         # Refine only what may be partly visible: a vertex, an edge midpoint or the centroid
         # is in front. Wholly hidden faces go at once instead of splitting into thousands.
-        samples = np.concatenate([0.5 * (cam + cam[:, [1, 2, 0]]), cam.mean(axis=1, keepdims=True)], axis=1)
-        partly = vertex_ok.any(axis=1) | front(samples)[0].any(axis=1)
-        edge = np.linalg.norm(uv[:, [1, 2, 0]] - uv, axis=2)
-        split = partly & (edge.max(axis=1) > config.max_edge_pixels)
-        world, cam = _bisect(world[split], edge[split]), _bisect(cam[split], edge[split])
-        src = np.tile(src[split], 2)
-    return np.concatenate(kept), np.concatenate(kept_src)
+        # Only faces with every corner hidden ("doubt") need these samples; they are
+        # projected in one batch with the midpoints.
+        doubt = np.flatnonzero(hidden.all(axis=0)[cut])
+        nd = len(doubt)
+        points = np.empty((6, c + 4 * nd))  # camera coordinates, then pixel and hidden
+        points[:3, :c] = mid[3:6]
+        if nd:
+            tip = np.take(state[3:6], cut[doubt], axis=2, mode="clip")
+            sample = points[:3, c:].reshape(3, 4, nd)
+            np.add(tip[:, :2], tip[:, 1:], out=sample[:, :2])
+            np.add(tip[:, 2], tip[:, 0], out=sample[:, 2])
+            sample[:, :3] *= 0.5
+            np.add(tip[:, 0], tip[:, 1], out=sample[:, 3])
+            sample[:, 3] += tip[:, 2]
+            sample[:, 3] /= 3
+        _project(points[:3], points[3:], lens, limit)
+        mid[6:] = points[3:, :c]
+        halves[:, 0, c:] = mid
+        if nd:
+            # Faces that are wholly hidden go: their halves get a NaN pixel, which makes
+            # them fail (every corner is hidden) without being cut in the next round.
+            gone = doubt[points[5, c:].reshape(4, nd).all(axis=0)]
+            halves[6, 0].reshape(2, c)[:, gone] = np.nan
+        state = halves
+        src = src[cut]
+        src = np.concatenate([src, src])
+    return kept, kept_src
 
 
-def _clipped_mesh(house, ids, camera, planes, d5, config: ViewMeshConfig) -> ClippedMesh:
-    tris, owner, corners, vertices = _soup(house, ids, planes)
-    # Triangles with every corner inside every plane need no clipping; deciding that per
-    # vertex is cheaper than per triangle corner.
-    inside = ((vertices @ planes[:, :3].T + planes[:, 3]) >= -config.clip_tolerance).all(axis=1)
-    whole = inside[corners].all(axis=1)
-    rest = np.flatnonzero(~whole)
+def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMeshConfig) -> list[ClippedMesh]:
+    """The :class:`ClippedMesh` of each list of instance ids in ``id_lists``.
+
+    The meshes are clipped and refined in one batch: those steps cost a number of numpy
+    calls per plane or per round, nearly regardless of how many triangles they carry, so
+    one batch for all meshes costs about what one mesh does. Every step keeps the order of
+    the pieces of each triangle and decides each triangle on its own, so each mesh comes
+    out exactly as it would alone; only welding is per mesh (each has its own vertices).
+    """
+    soups = [_soup(house, ids, planes) for ids in id_lists]
+    start = np.cumsum([0] + [len(soup[0]) for soup in soups])  # of each mesh's triangles
+    whole, rest = [], []
+    for (_, _, corners, vertices), first in zip(soups, start):
+        # Triangles with every corner inside every plane need no clipping; deciding that
+        # per vertex is cheaper than per triangle corner.
+        inside = _all_last((vertices @ planes[:, :3].T + planes[:, 3]) >= -config.clip_tolerance)
+        inside = _all_last(inside[corners])
+        whole.append(np.flatnonzero(inside) + first)
+        rest.append(np.flatnonzero(~inside) + first)
+    tris = np.concatenate([soup[0] for soup in soups])
+    rest = np.concatenate(rest)
     cut, cut_src = clip_triangles(tris[rest], planes, config.clip_tolerance)
-    clipped = np.concatenate([tris[whole], cut])
-    src = np.concatenate([np.flatnonzero(whole), rest[cut_src]])
-    kept_tris, kept = drop_behind_envelope(clipped, camera, d5, config)
-    vertices, faces = _weld_pieces(kept_tris, src[kept], tris, corners, vertices)
-    return ClippedMesh(vertices, faces, owner[src[kept]])
+    cut_src = rest[cut_src]
+    # Per mesh, its whole triangles then its cut pieces (as one mesh alone would have them).
+    mesh = np.searchsorted(start, cut_src, side="right") - 1
+    pieces, src = [], []
+    for m, kept in enumerate(whole):
+        own = np.flatnonzero(mesh == m)
+        pieces += [tris[kept], cut[own]]
+        src += [kept, cut_src[own]]
+    pieces, src = np.concatenate(pieces), np.concatenate(src)
+    kept_tris, kept = drop_behind_envelope(pieces, camera, d5, config, limit)
+    src = src[kept]
+    mesh = np.searchsorted(start, src, side="right") - 1
+    meshes = []
+    for m, ((_, owner, corners, vertices), first) in enumerate(zip(soups, start)):
+        own = np.flatnonzero(mesh == m)
+        source = src[own] - first
+        vertices, faces = _weld_pieces(kept_tris[own], source, soups[m][0], corners, vertices)
+        meshes.append(ClippedMesh(vertices, faces, owner[source]))
+    return meshes
 
 
 def view_mesh(
@@ -407,10 +623,10 @@ def view_mesh(
             f"{camera.width}×{camera.height}"
         )
     planes = frustum_planes(camera, config.near)
+    limit = _envelope_limit(d5, config.behind_envelope)
     inst = np.asarray(layers.instance)
-    object_ids = np.unique(inst[inst >= 0])
+    # np.unique(inst[inst >= 0]) without sorting every pixel.
+    object_ids = np.flatnonzero(np.bincount(inst[inst >= 0].ravel()))
     envelope_ids = [k for k, inst in enumerate(house.instances) if inst.envelope]
-    return ViewMesh(
-        objects=_clipped_mesh(house, object_ids, camera, planes, d5, config),
-        envelope=_clipped_mesh(house, envelope_ids, camera, planes, d5, config),
-    )
+    objects, envelope = _clipped_meshes(house, [object_ids, envelope_ids], camera, planes, d5, limit, config)
+    return ViewMesh(objects=objects, envelope=envelope)

@@ -9,8 +9,12 @@ from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import tol
 from sceneforge.frustum import (
     ViewMeshConfig,
+    _clipped_meshes,
+    _envelope_limit,
+    _unique_rows,
     clip_triangles,
     clip_triangles_by_plane,
+    drop_behind_envelope,
     frustum_planes,
     triangle_areas,
     view_mesh,
@@ -255,3 +259,125 @@ def test_view_mesh_config_is_checked():
         ViewMeshConfig(near=0.0)
     with pytest.raises(ValueError, match="max_edge_pixels"):
         ViewMeshConfig(max_edge_pixels=0.0)
+
+
+# ------------------------------------------------ the fast paths against plain versions
+
+
+def plain_unique_rows(points):
+    """np.unique(points, axis=0, return_inverse=True) by lexsort, first of equal rows."""
+    order = np.lexsort(points.T[::-1])
+    rows = points[order]
+    new = np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)]
+    inverse = np.empty(len(points), dtype=np.int32)
+    inverse[order] = np.cumsum(new) - 1
+    return rows[new], inverse
+
+
+@pytest.mark.parametrize("n", [1, 7, 999, 1000, 5000])
+def test_unique_rows_sorts_rows_and_keeps_the_first_of_equal_ones(n):
+    rng = np.random.default_rng(n)
+    points = np.round(rng.normal(size=(n // 3 + 1, 3)), 1)[rng.integers(0, n // 3 + 1, n)]
+    points[rng.random(n) < 0.3, 1] *= -1  # -0.0 next to 0.0: equal, kept as first seen
+    vertices, inverse = _unique_rows(points)
+    expected, expected_inverse = plain_unique_rows(points)
+    np.testing.assert_array_equal(vertices, expected)
+    np.testing.assert_array_equal(np.signbit(vertices), np.signbit(expected))
+    np.testing.assert_array_equal(inverse, expected_inverse)
+    assert inverse.dtype == np.int32
+
+
+def test_unique_rows_of_no_points_is_empty():
+    vertices, inverse = _unique_rows(np.zeros((0, 3)))
+    assert vertices.shape == (0, 3) and inverse.shape == (0,)
+
+
+def plain_drop_behind_envelope(triangles, camera, d5, config):
+    """drop_behind_envelope in its plainest form: every corner, sample and half is
+    projected anew each round."""
+    world = np.asarray(triangles, dtype=np.float64)
+    rot, centre = camera.cam_to_world[:3, :3], camera.cam_to_world[:3, 3]
+    cam = (world - centre) @ rot
+    src = np.arange(len(world))
+    kept, kept_src = [np.zeros((0, 3, 3))], [np.zeros(0, dtype=np.int64)]
+    (fx, skew, cx), (fy, cy) = camera.K[0], camera.K[1, 1:]
+    h, w = d5.shape
+
+    def front(points):
+        z = points[..., 2]
+        uv = np.stack([(fx * points[..., 0] + skew * points[..., 1]) / z + cx, fy * points[..., 1] / z + cy], -1)
+        col = np.clip(uv[..., 0], 0, w - 1).astype(np.int64)
+        row = np.clip(uv[..., 1], 0, h - 1).astype(np.int64)
+        limit = d5[row, col].astype(np.float64) + config.behind_envelope
+        return ~(np.isfinite(limit) & (z > limit)), uv
+
+    def bisect(t, k):
+        t = t[np.arange(len(t))[:, None], (k[:, None] + np.arange(3)) % 3]
+        m = 0.5 * (t[:, 0] + t[:, 1])
+        return np.concatenate([np.stack([t[:, 0], m, t[:, 2]], 1), np.stack([m, t[:, 1], t[:, 2]], 1)])
+
+    while len(world):
+        vertex_ok, uv = front(cam)
+        ok = vertex_ok.all(axis=1)
+        kept.append(world[ok])
+        kept_src.append(src[ok])
+        if config.max_edge_pixels is None or ok.all():
+            break
+        world, cam, src, uv, vertex_ok = world[~ok], cam[~ok], src[~ok], uv[~ok], vertex_ok[~ok]
+        samples = np.concatenate([0.5 * (cam + cam[:, [1, 2, 0]]), cam.mean(axis=1, keepdims=True)], axis=1)
+        partly = vertex_ok.any(axis=1) | front(samples)[0].any(axis=1)
+        edge = np.linalg.norm(uv[:, [1, 2, 0]] - uv, axis=2)
+        split = partly & (edge.max(axis=1) > config.max_edge_pixels)
+        k = np.argmax(edge[split], axis=1)
+        world, cam, src = bisect(world[split], k), bisect(cam[split], k), np.tile(src[split], 2)
+    return np.concatenate(kept), np.concatenate(kept_src)
+
+
+def half_occluded_view():
+    """A near wall over the left half of the view, a wall behind, two boxes."""
+    h = House(id="occluded", instances=[], rooms=[Room("r0", "room", 0)])
+    for name, (v, f) in [("near", quad(-5, 0, -5, 5, -2.0)), ("back", quad(-5, 5, -5, 5, -3.0))]:
+        make_instance(h, name=name, category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    box_instance(h, "front", 29, (0.4, 0.4, 0.4), (0.3, 1.0, -2.5))
+    box_instance(h, "behind", 29, (0.6, 0.6, 0.6), (-0.5, 1.1, -2.6))
+    cam = camera_looking_down_minus_z()
+    return h, cam, frontal_layers(h, cam, HouseTracer(h))
+
+
+@pytest.mark.parametrize("max_edge", [None, 1.0, 4.0])
+def test_drop_behind_envelope_matches_the_plain_refinement_bit_for_bit(max_edge):
+    house, cam, layers = half_occluded_view()
+    planes = frustum_planes(cam)
+    tris = np.concatenate([inst.vertices[inst.faces] for inst in house.instances])
+    tris, _ = clip_triangles(tris, planes)
+    # An occluder 1 m ahead with a window onto the walls, a hole (NaN: nothing behind) and
+    # scattered gaps: faces with every corner hidden that are partly seen through a gap,
+    # and wholly hidden ones.
+    d5 = np.full_like(layers.depth[4], 1.0)
+    d5[9:21, 12:28] = layers.depth[4][9:21, 12:28]
+    d5[2:6, 30:36] = np.nan
+    gaps = np.random.default_rng(1).random(d5.shape) < 0.05
+    d5[gaps] = layers.depth[4][gaps]
+    config = ViewMeshConfig(max_edge_pixels=max_edge)
+    kept, src = drop_behind_envelope(tris, cam, d5, config)
+    expected, expected_src = plain_drop_behind_envelope(tris, cam, d5, config)
+    np.testing.assert_array_equal(kept, expected)
+    np.testing.assert_array_equal(src, expected_src)
+    # The limit may be passed in, computed once per view.
+    again = drop_behind_envelope(tris, cam, d5, config, _envelope_limit(d5, config.behind_envelope))
+    np.testing.assert_array_equal(again[0], expected)
+
+
+def test_the_meshes_of_a_view_come_out_as_each_would_alone():
+    # Objects and envelope are clipped and refined in one batch.
+    house, cam, layers = half_occluded_view()
+    planes, config = frustum_planes(cam), ViewMeshConfig(max_edge_pixels=1.0)
+    d5 = np.asarray(layers.depth[4])
+    limit = _envelope_limit(d5, config.behind_envelope)
+    ids = [[2, 3], [0, 1]]
+    together = _clipped_meshes(house, ids, cam, planes, d5, limit, config)
+    for mesh, one in zip(together, ids):
+        (alone,) = _clipped_meshes(house, [one], cam, planes, d5, limit, config)
+        for field in ("vertices", "faces", "instance"):
+            np.testing.assert_array_equal(getattr(mesh, field), getattr(alone, field))
+    assert len(together[1].faces) > 2  # the back wall was refined
