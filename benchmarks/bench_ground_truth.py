@@ -22,11 +22,12 @@ import numpy as np
 import trimesh
 
 from sceneforge.cameras import CameraSamplerConfig, sample_cameras
+from sceneforge.conventions import tol
 from sceneforge.frustum import view_mesh
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.layers import frontal_layers
 from sceneforge.overhead import overhead_camera, overhead_truth
-from sceneforge.raytrace import HouseTracer
+from sceneforge.raytrace import FrontalHits, HouseTracer, Rays
 from sceneforge.view import ViewConfig, compute_view
 
 BREAKFAST = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
@@ -54,7 +55,7 @@ class TrimeshBackend:
             self._meshes[key] = (self._intersector(mesh), faces)
         return self._meshes[key]
 
-    def intersect_all(self, rays, instances=None):
+    def intersect_all(self, rays, instances=None, t_max=None):
         intersector, faces = self._mesh(instances)
         _, ray, tri = intersector.intersects_location(rays.origins, rays.directions, multiple_hits=True)
         return ray.astype(np.int64), faces[tri].astype(np.int64)
@@ -71,19 +72,28 @@ class TrimeshBackend:
 
 class NaiveTracer(HouseTracer):
     """The baseline pipeline: every hit of every ray through the whole house (trimesh
-    multi-hit), then the hits the layer rules may use are picked out. The layers agree
+    multi-hit), then the hits the layer rules may use are picked out (each ray's first
+    envelope hit, and the object hits up to it). The layers agree
     with sceneforge's except where trimesh drops coincident hits (measured in :func:`main`)."""
 
     def __init__(self, house):
         super().__init__(house)
         self.backend = TrimeshBackend(self.triangles)
 
-    def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near=0.0):
+    def frontal_query(self, origins, directions, objects=None, envelope=None, envelope_near=0.0):
         objects = ~self.triangles.envelope if objects is None else objects
         envelope = self.triangles.envelope if envelope is None else envelope
         hits = self.all_hits(origins, directions)
-        wanted = objects[hits.instance] | (envelope[hits.instance] & (hits.t >= envelope_near))
-        return hits.select(wanted)
+        ray = hits.ray_ids()
+        closes = envelope[hits.instance] & (hits.t >= envelope_near)
+        first = np.flatnonzero(closes)
+        first = first[np.r_[True, ray[first][1:] != ray[first][:-1]]] if len(first) else first
+        face = np.full(hits.n_rays, -1, dtype=np.int64)
+        face[ray[first]] = self.triangles.global_index(hits.instance[first], hits.triangle[first])
+        closing = self._first_hit(Rays.check(origins, directions), face)
+        cutoff = np.where(np.isnan(closing.t), np.inf, closing.t + tol.envelope_slack)
+        wanted = objects[hits.instance] & (hits.t <= cutoff[ray])
+        return FrontalHits(hits.select(wanted), closing)
 
 
 def tracer(house, backend: str) -> HouseTracer:

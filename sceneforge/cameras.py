@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
@@ -108,7 +108,7 @@ class Camera:
 
         Returns
         -------
-        origins     : (H*W, 3) float64  camera centre, world
+        origins     : (H*W, 3) float64  camera centre, world (one row, broadcast)
         directions  : (H*W, 3) float64  unit directions, world, row-major pixel order
         depth_scale : (H*W,) float64    planar depth of the point ``origin + t * direction``
                       is ``t * depth_scale``
@@ -117,18 +117,11 @@ class Camera:
 
     @cached_property
     def _rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = self.width * self.height
-        pixels = np.ones((n, 3))
-        pixels[:, 0] = np.tile(np.arange(self.width) + 0.5, self.height)
-        pixels[:, 1] = np.repeat(np.arange(self.height) + 0.5, self.width)
-        d_cam = pixels @ np.linalg.inv(self.K).T
-        d_cam /= np.sqrt(np.einsum("ij,ij->i", d_cam, d_cam))[:, None]
+        d_cam, depth_scale = _pixel_directions(self.K.tobytes(), self.width, self.height)
         directions = d_cam @ self.cam_to_world[:3, :3].T
-        origins = np.broadcast_to(self.cam_to_world[:3, 3], (n, 3)).copy()
-        out = origins, directions, d_cam[:, 2].copy()
-        for a in out:
-            a.flags.writeable = False
-        return out
+        directions.flags.writeable = False
+        origins = np.broadcast_to(self.cam_to_world[:3, 3], directions.shape)
+        return origins, directions, depth_scale
 
     def world_to_camera(self, points_world) -> np.ndarray:
         """(n, 3) float64 camera-frame coordinates of (n, 3) world points."""
@@ -149,6 +142,24 @@ class Camera:
             uvw = p @ self.K.T
             uv = uvw[:, :2] / z[:, None]
         return uv, z
+
+
+@lru_cache(maxsize=8)
+def _pixel_directions(K_bytes: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit camera-frame directions (H*W, 3) through the pixel centres of intrinsics ``K``
+    (its float64 bytes), and their z (the planar depth of unit distance). Shared, read-only:
+    every view of a render has the same intrinsics, only the pose changes."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    n = width * height
+    pixels = np.ones((n, 3))
+    pixels[:, 0] = np.tile(np.arange(width) + 0.5, height)
+    pixels[:, 1] = np.repeat(np.arange(height) + 0.5, width)
+    d_cam = pixels @ np.linalg.inv(K).T
+    d_cam /= np.sqrt(np.einsum("ij,ij->i", d_cam, d_cam))[:, None]
+    depth_scale = d_cam[:, 2].copy()
+    d_cam.flags.writeable = False
+    depth_scale.flags.writeable = False
+    return d_cam, depth_scale
 
 
 def opencv_to_opengl(cam_to_world) -> np.ndarray:

@@ -27,7 +27,7 @@ from .conventions import tol
 if TYPE_CHECKING:
     from .cameras import Camera
     from .houses.model import House
-    from .raytrace import Hits, HouseTracer
+    from .raytrace import FrontalHits, Hits, HouseTracer
 
 
 @dataclass
@@ -103,13 +103,7 @@ def layers_from_hits(
     normals       : (H*W, 3) float, optional  first-hit normals in the camera frame, NaN
                     where none; copied into ``Layers.normal`` (NaN everywhere when omitted)
     """
-    H, W = shape
-    n = H * W
-    if hits.n_rays != n:
-        raise ValueError(f"hits are for {hits.n_rays} rays, expected H×W = {H}×{W} = {n}")
-    depth_scale = np.asarray(depth_scale, dtype=np.float64).reshape(-1)
-    if len(depth_scale) != n:
-        raise ValueError(f"depth_scale has {len(depth_scale)} values, expected {n}")
+    n = _check_view(hits.n_rays, depth_scale, shape)
     inst_category = np.asarray(inst_category, dtype=np.uint8)
     inst_envelope = np.asarray(inst_envelope, dtype=bool)
     if inst_category.shape != inst_envelope.shape:
@@ -128,6 +122,56 @@ def layers_from_hits(
         ray, t, inst = ray[keep], t[keep], inst[keep]
     envelope = inst_envelope[inst]
 
+    # rule 1: the first envelope hit closes the ray (D5), give or take the slack
+    e = _first_per_ray(np.flatnonzero(envelope), ray)
+    closing_t = np.full(n, np.nan)
+    closing_inst = np.full(n, -1, dtype=np.int64)
+    closing_t[ray[e]] = t[e]
+    closing_inst[ray[e]] = inst[e]
+    cutoff = np.where(np.isnan(closing_t), np.inf, closing_t + tol.envelope_slack)
+    obj = ~envelope & (t <= cutoff[ray])
+    return _apply_rules(ray[obj], t[obj], inst[obj], closing_t, closing_inst, depth_scale,
+                        inst_category, shape, normals)
+
+
+def layers_from_frontal(
+    hits: "FrontalHits", depth_scale, inst_category, shape: tuple[int, int], normals=None
+) -> Layers:
+    """The layers of SPEC §4 from a :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`
+    (the same as :func:`layers_from_hits` on every hit, without sorting the closing hits in).
+
+    hits          : the frontal query of the H*W rays of a view, row-major pixel order
+    depth_scale, inst_category, shape, normals : as for :func:`layers_from_hits`
+    """
+    n = _check_view(hits.objects.n_rays, depth_scale, shape)
+    objects, closing = hits.objects, hits.closing
+    if len(closing.t) != n:
+        raise ValueError(f"closing hits are for {len(closing.t)} rays, expected {n}")
+    return _apply_rules(objects.ray_ids(), objects.t, objects.instance, closing.t, closing.instance,
+                        depth_scale, np.asarray(inst_category, dtype=np.uint8), shape, normals)
+
+
+def _check_view(n_rays: int, depth_scale, shape: tuple[int, int]) -> int:
+    """H*W, after checking that the hits and depth scale are for an H×W view."""
+    H, W = shape
+    n = H * W
+    if n_rays != n:
+        raise ValueError(f"hits are for {n_rays} rays, expected H×W = {H}×{W} = {n}")
+    if np.size(depth_scale) != n:
+        raise ValueError(f"depth_scale has {np.size(depth_scale)} values, expected {n}")
+    return n
+
+
+def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_category, shape, normals) -> Layers:
+    """SPEC §4 rules 2–3 on the object hits a ray's closing hit lets through.
+
+    ray, t, inst        : (k,) object hits sorted by ray, then distance; none beyond the
+                          closing hit + slack
+    closing_t, closing_inst : (H*W,) the closing (first envelope) hit per ray; NaN / -1: none
+    """
+    H, W = shape
+    n = H * W
+    depth_scale = np.asarray(depth_scale, dtype=np.float64).reshape(-1)
     depth = np.full((5, n), np.nan, dtype=np.float32)
     category = np.zeros((3, n), dtype=np.uint8)
     instance = np.full((2, n), -1, dtype=np.int32)
@@ -138,34 +182,31 @@ def layers_from_hits(
         depth[layer, r] = t[index] * depth_scale[r]
         return r
 
-    # D5 and rule 1: the first envelope hit closes the ray, give or take the slack
-    e = _first_per_ray(np.flatnonzero(envelope), ray)
-    r5 = fill(4, e)
-    category[2, r5] = inst_category[inst[e]]
-    cutoff = np.full(n, np.inf)
-    cutoff[r5] = t[e] + tol.envelope_slack
-    obj = ~envelope & (t <= cutoff[ray])
+    # D5: the closing hit (NaN distance where none: NaN depth; instance -1: the appended 0)
+    depth[4] = closing_t * depth_scale
+    category[2] = np.append(inst_category, 0)[closing_inst]
 
     # D1 and rule 2: the first object hit of a ray is visible by definition
-    first = _first_per_ray(np.flatnonzero(obj), ray)
+    first = np.flatnonzero(np.r_[True, ray[1:] != ray[:-1]]) if len(ray) else np.zeros(0, np.int64)
     r1 = fill(0, first)
     inst1 = np.full(n, -1, dtype=np.int64)
     inst1[r1] = inst[first]
-    visible = np.zeros(len(inst_envelope), dtype=bool)
+    visible = np.zeros(len(inst_category), dtype=bool)
     visible[inst[first]] = True
 
     # D2: exit of D1's instance
     d2_t = np.full(n, np.inf)
-    last = _last_per_ray(np.flatnonzero(obj & (inst == inst1[ray])), ray)
+    same1 = inst == inst1[ray]
+    last = _last_per_ray(np.flatnonzero(same1), ray)
     d2_t[fill(1, last)] = t[last]
 
     # D3: next visible instance at or after D2; D4: its exit
-    candidates = obj & visible[inst] & (inst != inst1[ray]) & (t >= d2_t[ray] - tol.same_instance_hit)
+    candidates = ~same1 & visible[inst] & (t >= d2_t[ray] - tol.same_instance_hit)
     third = _first_per_ray(np.flatnonzero(candidates), ray)
     r3 = fill(2, third)
     inst3 = np.full(n, -1, dtype=np.int64)
     inst3[r3] = inst[third]
-    fill(3, _last_per_ray(np.flatnonzero(obj & (inst == inst3[ray])), ray))
+    fill(3, _last_per_ray(np.flatnonzero(inst == inst3[ray]), ray))
 
     category[0, r1] = inst_category[inst[first]]
     category[1, r3] = inst_category[inst[third]]
@@ -196,6 +237,42 @@ def first_hit_normals(hits: "Hits", tracer: "HouseTracer", camera: "Camera") -> 
     return out
 
 
+def frontal_normals(hits: "FrontalHits", tracer: "HouseTracer", camera: "Camera") -> np.ndarray:
+    """(H*W, 3) float32 camera-frame normal of each ray's first hit, facing the camera; NaN
+    where the ray hits nothing. The same as :func:`first_hit_normals` on the merged hits
+    (rounded to float32): the first object hit unless the closing hit is nearer (exact
+    ties: lower face index). The result is a transposed view of a (3, H*W) array, the
+    layout :class:`Layers` stores."""
+    objects, closing = hits.objects, hits.closing
+    tri = tracer.triangles
+    has = objects.counts > 0
+    rays = np.flatnonzero(has)
+    first = objects.offsets[:-1][has]
+    face = closing.face.copy()
+    front = closing.front_facing.copy()
+    obj_face = tri.first_face[objects.instance[first]] + objects.triangle[first]
+    t_obj, t_close = objects.t[first], closing.t[rays]
+    # NaN closing distance (no envelope hit) compares False: the object is first
+    use = ~((t_close < t_obj) | ((t_close == t_obj) & (face[rays] < obj_face)))
+    face[rays[use]] = obj_face[use]
+    front[rays[use]] = objects.front_facing[first][use]
+
+    # camera-frame normals: rotate every face's once when there are fewer faces than rays
+    R = camera.cam_to_world[:3, :3]
+    out = np.full((3, len(face)), np.nan, dtype=np.float32)
+    hit = face >= 0
+    everywhere = bool(hit.all())
+    f = face if everywhere else face[hit]
+    if len(tri.offset) <= len(f):
+        normals = (R.T @ tri.normal_xyz)[:, f]
+    else:
+        normals = R.T @ tri.normal_xyz[:, f]
+    normals *= np.where(front if everywhere else front[hit], 1.0, -1.0)
+    if everywhere:
+        out[:] = normals
+    else:
+        out[:, hit] = normals
+    return out.T
 def frontal_layers(house: "House", camera: "Camera", tracer: "HouseTracer | None" = None) -> Layers:
     """D1..D5, classes, instances and first-hit normals of one view of ``house``.
 
@@ -206,8 +283,7 @@ def frontal_layers(house: "House", camera: "Camera", tracer: "HouseTracer | None
 
     tracer = tracer or HouseTracer(house)
     origins, directions, depth_scale = camera.rays()
-    hits = tracer.frontal_hits(origins, directions)
-    category, envelope = instance_labels(house)
-    return layers_from_hits(
-        hits, depth_scale, category, envelope, camera.shape, normals=first_hit_normals(hits, tracer, camera)
-    )
+    hits = tracer.frontal_query(origins, directions)
+    category, _ = instance_labels(house)
+    return layers_from_frontal(hits, depth_scale, category, camera.shape,
+                               normals=frontal_normals(hits, tracer, camera))

@@ -28,7 +28,7 @@ import numpy as np
 
 from .conventions import NYU40_IDS, in_classes
 from .errors import MissingDependencyError, SceneforgeError
-from .layers import Layers, instance_labels, layers_from_hits
+from .layers import Layers, instance_labels, layers_from_frontal
 
 if TYPE_CHECKING:
     import matplotlib.figure
@@ -553,9 +553,9 @@ def overhead_truth(
     # The query itself applies SPEC §7's filters: only the instances an overhead view sees,
     # and the first floor beyond the clearance closes each ray as the envelope does in a
     # frontal view (tests/test_view.py checks this against tracing every hit and filtering).
-    hits = tracer.frontal_hits(origins, directions, objects=seen & ~envelope, envelope=seen & envelope,
-                               envelope_near=config.floor_clearance)
-    layers = layers_from_hits(hits, depth_scale, category, envelope, (camera.height, camera.width))
+    hits = tracer.frontal_query(origins, directions, objects=seen & ~envelope, envelope=seen & envelope,
+                                envelope_near=config.floor_clearance)
+    layers = layers_from_frontal(hits, depth_scale, category, (camera.height, camera.width))
     top = float(camera.cam_to_world[1, 3])
     height = (top - layers.depth[0].astype(np.float64) - camera.floor_y).astype(np.float32)
     first = np.isfinite(layers.depth[0])

@@ -10,7 +10,13 @@ import trimesh
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
-from sceneforge.layers import first_hit_normals, frontal_layers, instance_labels, layers_from_hits
+from sceneforge.layers import (
+    first_hit_normals,
+    frontal_layers,
+    frontal_normals,
+    instance_labels,
+    layers_from_hits,
+)
 from sceneforge.raytrace import Hits, HouseTracer
 
 from .conftest import BREAKFAST_ROOM
@@ -183,6 +189,21 @@ def test_first_hit_normals_face_the_camera(furnished):
     np.testing.assert_allclose(layers.normal[:, r, c], [0, -1, 0], atol=1e-6)
     n = layers.normal.reshape(3, -1)
     np.testing.assert_allclose(np.linalg.norm(n, axis=0), 1, atol=1e-6)
+
+
+def test_frontal_normals_are_the_first_hit_normals_of_the_merged_hits():
+    """The split query picks each ray's first hit from the objects and the closing hit the
+    same way the merged, sorted hits do, ties included (a shelf touching the wall behind it)."""
+    h = room()
+    add_box(h, "shelf", PROP, (1.0, 0.0, 5.7), (2.0, 2.0, 6.0))  # its back is the far wall's plane
+    add_box(h, "chair", PROP, (2.5, 0.0, 2.0), (3.0, 1.0, 2.5))
+    camera = look_at_camera((2.0, 1.5, 0.5), (0.3, -0.2, 1.0), width=W, height=H)
+    tracer = HouseTracer(h)
+    origins, directions, _ = camera.rays()
+    split = frontal_normals(tracer.frontal_query(origins, directions), tracer, camera)
+    merged = first_hit_normals(tracer.frontal_hits(origins, directions), tracer, camera)
+    assert np.isfinite(split).all() and split.dtype == np.float32
+    np.testing.assert_allclose(split, merged, rtol=0, atol=1e-7)  # float32 rounding of the same normal
 
 
 def test_keep_drops_hits_before_the_rules(furnished):

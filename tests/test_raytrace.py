@@ -152,6 +152,53 @@ def test_frontal_hits_are_all_hits_up_to_the_first_envelope_hit(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test_frontal_query_is_frontal_hits_split_at_the_closing_hit(backend):
+    """Objects (sorted, cut 1 mm behind the closing hit) and the closing hit per ray: the
+    same hits as :meth:`frontal_hits`, which sorts them together."""
+    house = random_house(5)
+    origins, directions = random_rays(np.random.default_rng(9), 1000)
+    tracer = HouseTracer(house, backend=backend)
+    merged = tracer.frontal_hits(origins, directions)
+    split = tracer.frontal_query(origins, directions)
+    envelope = np.array([i.envelope for i in house.instances])
+    is_wall = envelope[merged.instance]
+    objects = merged.select(~is_wall)
+    for name in ("offsets", "t", "instance", "triangle", "front_facing"):
+        np.testing.assert_array_equal(getattr(split.objects, name), getattr(objects, name))
+    walls = merged.select(is_wall)
+    closed = walls.counts > 0
+    assert (walls.counts <= 1).all() and 0 < closed.sum() < len(closed)
+    np.testing.assert_array_equal(split.closing.hit, closed)
+    np.testing.assert_array_equal(split.closing.t[closed], walls.t)
+    np.testing.assert_array_equal(split.closing.instance[closed], walls.instance)
+    np.testing.assert_array_equal(split.closing.triangle[closed], walls.triangle)
+    np.testing.assert_array_equal(split.closing.front_facing[closed], walls.front_facing)
+    assert np.isnan(split.closing.t[~closed]).all() and (split.closing.face[~closed] == -1).all()
+
+
+def test_shared_origin_or_direction_gives_the_same_hits():
+    """A camera passes its origin (an orthographic view its direction) as one broadcast row;
+    the distances are computed per face then, and must not change by a bit."""
+    house = random_house(6)
+    tracer = HouseTracer(house)
+    rng = np.random.default_rng(10)
+    _, directions = random_rays(rng, 3000)
+    origin = np.array([1.0, 1.0, 1.0])
+    full = tracer.all_hits(np.tile(origin, (3000, 1)), directions)
+    shared = tracer.all_hits(np.broadcast_to(origin, (3000, 3)), directions)
+    origins, _ = random_rays(rng, 3000)
+    down = np.array([0.0, -1.0, 0.0])
+    full_d = tracer.frontal_hits(origins, np.tile(down, (3000, 1)))
+    shared_d = tracer.frontal_hits(origins, np.broadcast_to(down, (3000, 3)))
+    for a, b in ((full, shared), (full_d, shared_d)):
+        assert len(a.t) > len(tracer.triangles.faces)  # more hits than faces: the per-face path
+        for name in ("offsets", "t", "instance", "triangle", "front_facing"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    few = tracer.all_hits(np.broadcast_to(origin, (5, 3)), directions[:5])  # per-hit path
+    np.testing.assert_array_equal(few.t, tracer.all_hits(np.tile(origin, (5, 1)), directions[:5]).t)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_frontal_hits_without_objects_or_without_envelope(backend):
     walls = House(id="walls", instances=[])
     add_box(walls, "wall", 1, (0, 0, 1), (1, 1, 1.1))

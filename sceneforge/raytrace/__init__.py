@@ -14,10 +14,16 @@ bit-identical distances for the same hit), hits are sorted per ray, and hits of 
 instance within ``tol.same_instance_hit`` of each other (a ray through an edge shared by
 two triangles) are merged into the first of them.
 
-:meth:`HouseTracer.frontal_hits` returns only the hits the frontal layers can use (SPEC §4
-rule 1): a first-hit query against the envelope and an all-hit query against the objects
-replace an all-hit query through every wall of the house (on the bundled multi-room toy
-houses a view has 2–6× fewer hits and is traced 1.3–3× faster), with the same layers.
+:meth:`HouseTracer.frontal_query` returns only the hits the frontal layers can use (SPEC §4
+rule 1), split the way the rules read them: a first-hit query against the envelope (the
+*closing* hit of each ray) and an all-hit query against the objects, cut just behind the
+closing hit, replace an all-hit query through every wall of the house (on the bundled
+multi-room toy houses a view has 2–6× fewer hits and is traced 1.3–3× faster), with the
+same layers. :meth:`HouseTracer.frontal_hits` gives the same hits as one sorted list.
+
+Where all rays share their origin (a perspective camera) or direction (an orthographic
+one), pass it as one row broadcast to (n, 3) (``np.broadcast_to``, as :meth:`Camera.rays`
+does): the plane-distance terms are then computed once per face instead of per hit.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from ..errors import HouseError
 if TYPE_CHECKING:
     from ..houses.model import House
 
-__all__ = ["BACKENDS", "Backend", "FirstHit", "Hits", "HouseTracer", "HouseTriangles", "Rays"]
+__all__ = ["BACKENDS", "Backend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays"]
 
 #: Engine names accepted by :class:`HouseTracer`.
 BACKENDS = ("open3d", "reference")
@@ -87,20 +93,45 @@ class FirstHit:
     t            : (n,) float64  distance along the unit direction; NaN where the ray escapes
     instance     : (n,) int32    house instance index; -1 where the ray escapes
     triangle     : (n,) int64    triangle index within the instance; -1 where the ray escapes
-    normal       : (n, 3) float64  unit winding normal of the hit triangle, world; NaN where none
     front_facing : (n,) bool     the ray meets the triangle's front side; False where none
+    face         : (n,) int64    index of the triangle in the tracer's ``HouseTriangles.faces``;
+                   -1 where the ray escapes
     """
 
     t: np.ndarray
     instance: np.ndarray
     triangle: np.ndarray
-    normal: np.ndarray
     front_facing: np.ndarray
+    face: np.ndarray
+    face_normals: np.ndarray = field(repr=False)
 
     @property
     def hit(self) -> np.ndarray:
         """(n,) bool rays that hit something."""
         return self.instance >= 0
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(n, 3) float64 unit winding normal of the hit triangle, world; NaN where none
+        (looked up on use: the frontal layers only need a few of them)."""
+        out = np.full((len(self.t), 3), np.nan)
+        hit = self.face >= 0
+        out[hit] = self.face_normals[self.face[hit]]
+        return out
+
+
+@dataclass
+class FrontalHits:
+    """The hits the layer rules use (SPEC §4 rule 1), in the form they read them.
+
+    objects : :class:`Hits`  every object hit of each ray, sorted, up to ``tol.envelope_slack``
+              behind the ray's closing hit (all of them where there is none)
+    closing : :class:`FirstHit`  each ray's first envelope hit (the overhead view: first
+              floor hit beyond the clearance); what closes the ray and gives D5
+    """
+
+    objects: Hits
+    closing: FirstHit
 
 
 @dataclass(frozen=True)
@@ -162,12 +193,15 @@ class HouseTriangles:
 class Rays:
     """A checked batch of rays, as engines receive it.
 
-    origins, directions : (n, 3) float64  unit directions
-    origin_xyz          : (3, 1) float64 when every ray starts at the same point (a
-                          perspective camera), else (3, n): what distance computations gather
-    direction_xyz       : (3, n) float64
-    cache               : an engine's own form of these rays, kept between the queries of
-                          one :class:`HouseTracer` call
+    origins, directions : (n, 3) float64  unit directions; either may be a read-only
+                          broadcast of one row (``np.broadcast_to``): a perspective camera
+                          shares its origin, an orthographic one its direction
+    origin_xyz          : (3, 1) float64 when every ray starts at the same point, else
+                          (3, n) (a view of ``origins``): what distance computations gather
+    direction_xyz       : (3, 1) float64 when every ray has the same direction, else (3, n)
+    cache               : per-batch values kept between the queries of one
+                          :class:`HouseTracer` call (an engine's own form of the rays,
+                          per-face terms of the plane distances)
     """
 
     origins: np.ndarray
@@ -178,20 +212,33 @@ class Rays:
 
     @classmethod
     def check(cls, origins, directions) -> "Rays":
-        o = np.ascontiguousarray(origins, dtype=np.float64)
-        d = np.ascontiguousarray(directions, dtype=np.float64)
-        if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        o, o_shared = _ray_rows(origins, "origins")
+        d, d_shared = _ray_rows(directions, "directions")
+        if d.shape != o.shape:
             raise ValueError(f"origins and directions must both be (n, 3), got {o.shape} and {d.shape}")
-        if not (np.isfinite(o).all() and np.isfinite(d).all()):
-            raise ValueError("ray origins and directions must be finite")
-        if len(d) and np.abs(np.einsum("ij,ij->i", d, d) - 1.0).max() > 2e-6:
+        unit = d[:1] if d_shared else d
+        if len(d) and np.abs(np.einsum("ij,ij->i", unit, unit) - 1.0).max() > 2e-6:
             raise ValueError("ray directions must be unit vectors")
-        shared = len(o) > 0 and bool((o == o[0]).all())
-        origin_xyz = o[:1].T.copy() if shared else np.ascontiguousarray(o.T)
-        return cls(o, d, origin_xyz, np.ascontiguousarray(d.T))
+        # rows given in full may still all be the same (the last row decides most cases)
+        o_shared = o_shared or (len(o) > 0 and bool((o[-1] == o[0]).all()) and bool((o == o[0]).all()))
+        origin_xyz = o[:1].T.copy() if o_shared else o.T
+        direction_xyz = d[:1].T.copy() if d_shared else d.T
+        return cls(o, d, origin_xyz, direction_xyz)
 
     def __len__(self) -> int:
         return len(self.origins)
+
+
+def _ray_rows(a, name: str) -> tuple[np.ndarray, bool]:
+    """``a`` as (n, 3) float64, checked finite, and whether it is one row broadcast (then
+    it is kept as the broadcast and only that row is checked)."""
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"ray {name} must be (n, 3), got {a.shape}")
+    shared = len(a) > 0 and a.strides[0] == 0
+    if not np.isfinite(a[:1] if shared else a).all():
+        raise ValueError("ray origins and directions must be finite")
+    return (a if shared else np.ascontiguousarray(a)), shared
 
 
 class Backend(Protocol):
@@ -200,9 +247,13 @@ class Backend(Protocol):
 
     name: str
 
-    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect_all(
+        self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Every (ray, face) crossing with distance >= 0 in any order: two (k,) int64 arrays,
-        faces indexing ``HouseTriangles.faces``. Back faces count."""
+        faces indexing ``HouseTriangles.faces``. Back faces count. ``t_max`` (n,) float64: the
+        caller will drop crossings farther than this along ray r, so an engine may leave out
+        those it can tell, from its own distances, are beyond ``t_max[r] + T_MAX_MARGIN``."""
 
     def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
         """(n,) int64 face of the nearest crossing of each ray, -1 where none."""
@@ -211,21 +262,53 @@ class Backend(Protocol):
         """(n,) float64 distance from each (n, 3) point to the nearest triangle."""
 
 
+#: how far (m) past ``t_max`` an engine's own (e.g. float32) distance must be before it
+#: may leave a crossing out; generous against rounding, tiny against room sizes
+T_MAX_MARGIN = 0.01
+
+
 def _plane_distance(
     triangles: HouseTriangles, face: np.ndarray, ray: np.ndarray, rays: Rays
 ) -> tuple[np.ndarray, np.ndarray]:
     """Distance along ray ``ray[i]`` to the plane of face ``face[i]``, and ``normal · direction``.
 
-    face, ray : (k,) int64. Returns two (k,) float64 arrays. Every engine's hits go through
-    this one computation, so the same (ray, face) pair always gets bit-identical distances.
+    face, ray : (k,) int64 (``ray`` None: every ray in order, k = n). Returns two (k,)
+    float64 arrays. Every engine's hits go through
+    this one computation, so the same (ray, face) pair always gets bit-identical distances:
+    ``(offset - normal · origin) / (normal · direction)``, each dot product summed x, y, z.
     """
-    n = [triangles.normal_xyz[axis][face] for axis in range(3)]
-    o = rays.origin_xyz if rays.origin_xyz.shape[1] == 1 else rays.origin_xyz[:, ray]
-    d = rays.direction_xyz
-    cos = n[0] * d[0][ray] + n[1] * d[1][ray] + n[2] * d[2][ray]
-    numerator = triangles.offset[face] - (n[0] * o[0] + n[1] * o[1] + n[2] * o[2])
+    numerator = _normal_dot(triangles, face, ray, rays, "origin")
+    cos = _normal_dot(triangles, face, ray, rays, "direction")
     with np.errstate(divide="ignore", invalid="ignore"):
         return numerator / cos, cos
+
+
+def _normal_dot(triangles: HouseTriangles, face: np.ndarray, ray: np.ndarray, rays: Rays, what: str) -> np.ndarray:
+    """(k,) ``offset - normal · origin`` (``what="origin"``) or ``normal · direction`` of each
+    (face, ray) pair.
+
+    Where every ray shares the vector (a camera's origin, an orthographic direction), the
+    value depends on the face only: with at least as many pairs as faces it is computed
+    once per face (kept in ``rays.cache``) and gathered, else per pair. The float operations
+    are the same either way, so are the results.
+    """
+    n = triangles.normal_xyz
+    xyz = rays.origin_xyz if what == "origin" else rays.direction_xyz
+    if xyz.shape[1] == 1:
+        x, y, z = xyz[:, 0]
+        if len(face) >= len(triangles.offset):
+            per_face = rays.cache.get(what)
+            if per_face is None:
+                per_face = n[0] * x + n[1] * y + n[2] * z
+                if what == "origin":
+                    per_face = triangles.offset - per_face
+                rays.cache[what] = per_face
+            return per_face[face]
+        dot = n[0][face] * x + n[1][face] * y + n[2][face] * z
+    else:
+        x, y, z = xyz if ray is None else (xyz[0][ray], xyz[1][ray], xyz[2][ray])
+        dot = n[0][face] * x + n[1][face] * y + n[2][face] * z
+    return triangles.offset[face] - dot if what == "origin" else dot
 
 
 def _collect_hits(
@@ -337,13 +420,18 @@ class HouseTracer:
         ray, face = self.backend.intersect_all(rays, instances)
         return _collect_hits(self.triangles, rays, ray, face)
 
-    def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0) -> Hits:
-        """The hits the layer rules use: each ray's first envelope hit and every object hit
-        up to ``tol.envelope_slack`` behind it (all object hits where no envelope is hit).
-        :func:`sceneforge.layers.layers_from_hits` gives the same layers from these as from
-        :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster. The one exception:
-        where two envelope surfaces are hit first at the same distance (within float32
-        rounding), the engine picks one of them for D5.
+    def frontal_query(
+        self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0
+    ) -> FrontalHits:
+        """The hits the layer rules use, split as they read them: each ray's first envelope
+        hit (the *closing* hit) and every object hit up to ``tol.envelope_slack`` behind it
+        (all object hits where no envelope is hit). :func:`sceneforge.layers.layers_from_frontal`
+        gives the same layers from these as :func:`~sceneforge.layers.layers_from_hits` from
+        :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster: a first-hit query
+        against the envelope replaces tracing through every wall of the house, objects far
+        behind the closing hit are dropped before any distance is computed, and the closing
+        hits never enter the per-ray sort. The one exception: where two envelope surfaces are
+        hit first at the same distance (within float32 rounding), the engine picks one of them.
 
         origins, directions : (n, 3) float  ray origins and unit directions, world
         objects             : (n_instances,) bool, optional  the object instances to trace
@@ -355,37 +443,63 @@ class HouseTracer:
         rays = Rays.check(origins, directions)
         objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
         envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
-        wall = self.backend.intersect_first(rays, envelope)
-        walled = np.flatnonzero(wall >= 0)
-        t_wall = _plane_distance(self.triangles, wall[walled], walled, rays)[0]
-        near = walled[t_wall < envelope_near]
+        closing = self._closing(rays, envelope, envelope_near)
+        cutoff = closing.t + tol.envelope_slack
+        cutoff[np.isnan(cutoff)] = np.inf
+        ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
+        return FrontalHits(_collect_hits(self.triangles, rays, ray, face, cutoff), closing)
+
+    def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0) -> Hits:
+        """The hits of :meth:`frontal_query` as one :class:`Hits` (closing hits sorted in
+        among the object hits): the subset of :meth:`all_hits` the layer rules use.
+        Arguments as for :meth:`frontal_query`."""
+        rays = Rays.check(origins, directions)
+        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
+        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        closing = self._closing(rays, envelope, envelope_near)
+        walled = np.flatnonzero(closing.face >= 0)
+        cutoff = closing.t + tol.envelope_slack
+        cutoff[np.isnan(cutoff)] = np.inf
+        ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
+        return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, closing.face[walled]], cutoff)
+
+    def _closing(self, rays: Rays, envelope: np.ndarray, envelope_near: float) -> FirstHit:
+        """Each ray's first hit among the ``envelope`` instances at least ``envelope_near``
+        along it."""
+        face = self.backend.intersect_first(rays, envelope)
+        near = np.zeros(0, dtype=np.int64)
+        if envelope_near > 0:
+            walled = np.flatnonzero(face >= 0)
+            t = _plane_distance(self.triangles, face[walled], walled, rays)[0]
+            near = walled[t < envelope_near]
         if len(near):  # rare (a floor right under an overhead camera): look again from past it
             again = Rays.check(rays.origins[near] + envelope_near * rays.directions[near], rays.directions[near])
-            wall[near] = self.backend.intersect_first(again, envelope)
-            walled = np.flatnonzero(wall >= 0)
-            t_wall = _plane_distance(self.triangles, wall[walled], walled, rays)[0]
-        cutoff = np.full(len(rays), np.inf)
-        cutoff[walled] = t_wall + tol.envelope_slack
-        ray, face = self.backend.intersect_all(rays, objects)
-        return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, wall[walled]], cutoff)
+            face[near] = self.backend.intersect_first(again, envelope)
+        return self._first_hit(rays, face)
 
     def first_hit(self, origins, directions) -> FirstHit:
         """The nearest hit of each ray (origins, directions: (n, 3) float, unit directions)."""
         rays = Rays.check(origins, directions)
+        return self._first_hit(rays, self.backend.intersect_first(rays))
+
+    def _first_hit(self, rays: Rays, face: np.ndarray) -> FirstHit:
+        """:class:`FirstHit` of the engine's nearest faces ``face`` (n,) (-1: none)."""
         n = len(rays)
-        face = self.backend.intersect_first(rays)
         hit = face >= 0
-        f = face[hit]
-        t = np.full(n, np.nan)
-        cos = np.zeros(n)
-        t[hit], cos[hit] = _plane_distance(self.triangles, f, np.flatnonzero(hit), rays)
+        everywhere = bool(hit.all())
+        f = face if everywhere else face[hit]
+        t_hit, cos_hit = _plane_distance(self.triangles, f, None if everywhere else np.flatnonzero(hit), rays)
+        if everywhere:
+            t, cos = t_hit, cos_hit
+        else:
+            t = np.full(n, np.nan)
+            cos = np.zeros(n)
+            t[hit], cos[hit] = t_hit, cos_hit
         instance = np.full(n, -1, dtype=np.int32)
         instance[hit] = self.triangles.instance[f]
         triangle = np.full(n, -1, dtype=np.int64)
         triangle[hit] = f - self.triangles.first_face[instance[hit]]
-        normal = np.full((n, 3), np.nan)
-        normal[hit] = self.triangles.normal[f]
-        return FirstHit(t, instance, triangle, normal, cos < 0)
+        return FirstHit(t, instance, triangle, cos < 0, face, self.triangles.normal)
 
     def closest_distance(self, points) -> np.ndarray:
         """(n,) float64 distance from each (n, 3) world point to the nearest surface."""

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import MissingDependencyError
-from . import HouseTriangles, Rays
+from . import T_MAX_MARGIN, HouseTriangles, Rays
 
 #: Open3D's id for "no hit" (uint32 max)
 _INVALID_ID = np.iinfo(np.uint32).max
@@ -75,22 +75,33 @@ class Open3DBackend:
         return self._scenes[key]
 
     def _query(self, rays: Rays):
-        """The rays as Open3D's (n, 6) float32 tensor, made once per batch."""
+        """The rays as Open3D's (n, 6) float32 tensor, made once per batch (sharing the
+        memory of a numpy array kept beside it)."""
         if "open3d" not in rays.cache:
             query = np.empty((len(rays), 6), dtype=np.float32)
-            np.subtract(rays.origins, self._shift, out=query[:, :3], casting="unsafe")
+            shared = rays.origins.strides[0] == 0
+            query[:, :3] = (rays.origins[:1] if shared else rays.origins) - self._shift  # row broadcasts
             query[:, 3:] = rays.directions
-            rays.cache["open3d"] = self._o3d.core.Tensor(query)
-        return rays.cache["open3d"]
+            rays.cache["open3d"] = (query, self._o3d.core.Tensor.from_numpy(query))
+        return rays.cache["open3d"][1]
 
-    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect_all(
+        self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         ray_ids, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
         if len(rays):
             for scene, members in self._selected(instances):
                 found = scene.list_intersections(self._query(rays))
-                ray_ids.append(found["ray_ids"].numpy().astype(np.int64))
-                instance = members[found["geometry_ids"].numpy()]
-                faces.append(self._first_face[instance] + found["primitive_ids"].numpy())
+                ray = found["ray_ids"].numpy()
+                geometry = found["geometry_ids"].numpy()
+                primitive = found["primitive_ids"].numpy()
+                if t_max is not None:
+                    # Open3D's float32 distances are within far less than the margin of the
+                    # exact ones: what is dropped here the caller would drop anyway
+                    near = found["t_hit"].numpy() <= t_max[ray] + T_MAX_MARGIN
+                    ray, geometry, primitive = ray[near], geometry[near], primitive[near]
+                ray_ids.append(ray.astype(np.int64))
+                faces.append(self._first_face[members[geometry]] + primitive)
         return np.concatenate(ray_ids), np.concatenate(faces)
 
     def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:

@@ -108,7 +108,11 @@ class ReferenceBackend:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         return np.concatenate(out_r), np.concatenate(out_f), np.concatenate(out_t)
 
-    def intersect_all(self, rays: Rays, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def intersect_all(
+        self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        # t_max is ignored: the reference reports every crossing and leaves the cut-off to
+        # the caller, so that the fast engine's early cut is checked against it
         ray, face, _ = self._crossings(rays.origins, rays.directions, instances)
         return ray, face
 
