@@ -20,7 +20,6 @@ surfaces (:func:`overhead_truth`).
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -209,10 +208,14 @@ class FrontalPoints:
     """What the heuristics need from a frontal view, in its gravity-aligned frame.
 
     objects         : (n, 3) float64  D1–D4 points ``(right, up, forward)``, metres
-    object_room     : (n,) object     room id of each point's instance (None: no room)
+    object_room     : (n,) int        room of each point's instance, as an index into
+                      ``room_ids`` (-1: no room)
     object_excluded : (n,) bool       the point's instance is of a class the room box ignores
     envelope_z      : (k,) float64    planar depth (camera z) of the D5 points
-    voter_rooms     : (v,) object     room id of each visible object pixel (D1; None: no room)
+    room_votes      : (r,) int64      visible object pixels (D1) of each room of ``room_ids``
+    room_ids        : (r,) tuple      the house's room ids, sorted by ``str``: rooms are
+                      integer codes so that voting is a ``bincount``, and this order makes
+                      the smallest code the smallest room id (the vote's tie rule)
     top             : float           highest ``up`` of the D1, D2 and D5 points
     """
 
@@ -220,7 +223,8 @@ class FrontalPoints:
     object_room: np.ndarray
     object_excluded: np.ndarray
     envelope_z: np.ndarray
-    voter_rooms: np.ndarray
+    room_votes: np.ndarray
+    room_ids: tuple
     top: float
 
 
@@ -237,15 +241,19 @@ def depth_statistics_box(objects: np.ndarray, config: OverheadConfig) -> Candida
     circle, as the reference does, instead of rejecting the box.
     """
     name = CANDIDATE_NAMES[0]
-    xz = np.asarray(objects, dtype=np.float64).reshape(-1, 3)[:, [0, 2]]
-    if len(xz) < config.stats_min_points:
-        return _rejected(name, f"{len(xz)} object points < {config.stats_min_points}", len(xz))
-    mean = xz.mean(axis=0)
-    half = np.maximum(config.stats_std_scale * xz.std(axis=0), config.stats_min_half_size)
+    pts = np.asarray(objects, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < config.stats_min_points:
+        return _rejected(name, f"{len(pts)} object points < {config.stats_min_points}", len(pts))
+    # Per column, without copying them out: frontal_points' columns are contiguous.
+    right, forward = pts[:, 0], pts[:, 2]
+    mean = np.array([right.mean(), forward.mean()])
+    std = np.array([right.std(), forward.std()])
+    half = np.maximum(config.stats_std_scale * std, config.stats_min_half_size)
     dist = float(np.linalg.norm(mean))
     if dist > config.stats_max_distance:
         mean = mean * (config.stats_max_distance / dist)
-    return Candidate(name, Box(mean - half, mean + half), 1.0, None, len(xz))
+    return Candidate(name, Box(mean - half, mean + half), 1.0, None, len(pts))
+
 
 
 def envelope_frustum_box(
@@ -271,7 +279,8 @@ def majority_room_box(
     objects: np.ndarray,
     object_room: np.ndarray,
     object_excluded: np.ndarray,
-    voter_rooms: np.ndarray,
+    room_votes: np.ndarray,
+    room_ids: tuple,
     config: OverheadConfig,
 ) -> Candidate:
     """Heuristic 3: bounding box of the object points of the room most pixels see.
@@ -280,23 +289,38 @@ def majority_room_box(
     the winner's object points between ``room_distance_range`` from the camera (3D
     distance), excluding ``room_excluded`` classes, are boxed and the box's half-size
     is grown by ``room_growth``.
+
+    Rooms are codes into ``room_ids`` (see :class:`FrontalPoints`): ``object_room`` per
+    point (-1: none), ``room_votes`` per room. ``room_ids`` must be sorted by ``str``, which
+    makes the first of the most voted codes the winner of the tie rule.
     """
     name = CANDIDATE_NAMES[2]
-    votes = Counter(r for r in voter_rooms if r is not None)
-    n_votes = sum(votes.values())
-    if n_votes < config.room_min_votes:
-        return _rejected(name, f"{n_votes} room votes < {config.room_min_votes}")
-    room = min(votes, key=lambda r: (-votes[r], str(r)))
+    votes = np.asarray(room_votes, dtype=np.int64).ravel()
+    if len(votes) != len(room_ids):
+        raise ValueError(f"{len(votes)} room votes for {len(room_ids)} room ids")
+    n_votes = int(votes.sum())
+    # At least one vote, whatever room_min_votes says: with none there is no winner.
+    if n_votes < max(config.room_min_votes, 1):
+        return _rejected(name, f"{n_votes} room votes < {max(config.room_min_votes, 1)}")
+    code = int(np.argmax(votes))
+    room = room_ids[code]
     pts = np.asarray(objects, dtype=np.float64).reshape(-1, 3)
-    dist = np.linalg.norm(pts, axis=1)
+    # The distances are only needed for the winner's points: select them first, per
+    # column (contiguous in frontal_points' objects).
+    sel = np.flatnonzero((np.asarray(object_room) == code) & ~np.asarray(object_excluded, bool))
+    x, y, z = (pts[:, axis].take(sel) for axis in range(3))
+    dist = x * x
+    dist += y * y
+    dist += z * z
+    np.sqrt(dist, out=dist)  # the same sums, in the same order, as np.linalg.norm(axis=1)
     lo_d, hi_d = config.room_distance_range
-    use = (np.asarray(object_room, dtype=object) == room) & ~np.asarray(object_excluded, bool)
-    use &= (dist >= lo_d) & (dist <= hi_d)
-    n = int(use.sum())
+    use = (dist >= lo_d) & (dist <= hi_d)
+    n = int(np.count_nonzero(use))
     if n < config.room_min_points:
         return _rejected(name, f"{n} points of room {room!r} < {config.room_min_points}", n)
-    xz = pts[use][:, [0, 2]]
-    centre, half = 0.5 * (xz.min(0) + xz.max(0)), 0.5 * (xz.max(0) - xz.min(0))
+    x, z = x[use], z[use]
+    lo, hi = np.array([x.min(), z.min()]), np.array([x.max(), z.max()])
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     half = half * config.room_growth
     return Candidate(name, Box(centre - half, centre + half), 1.0, None, n)
 
@@ -366,22 +390,30 @@ class OverheadCamera:
         return self.resolution
 
     def _pixel_centres(self) -> np.ndarray:
-        """(H*W, 2) float64 camera-plane ``(x, y)`` of the pixel centres, row-major."""
-        c = ((np.arange(self.resolution) + 0.5) / self.resolution * 2.0 - 1.0) * self.half_extent
-        y, x = np.meshgrid(c, c, indexing="ij")
-        return np.column_stack([x.ravel(), y.ravel()])
+        """(resolution,) float64 camera-plane coordinate of the pixel centres along either
+        image axis (x along a row, y down a column)."""
+        return ((np.arange(self.resolution) + 0.5) / self.resolution * 2.0 - 1.0) * self.half_extent
 
     def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Parallel rays through the pixel centres, row-major.
 
         Returns origins (H*W, 3) float64 on the camera plane, directions (H*W, 3) float64
         (all world −Y) and depth_scale (H*W,) float64 (all 1: ray length = planar depth).
+        ``directions`` and ``depth_scale`` are read-only broadcasts of one value (the
+        tracer takes a broadcast direction as shared), and origins are one pass over the
+        output: the sum of a per-column and a per-row term.
         """
-        xy = self._pixel_centres()
+        c = self._pixel_centres()
         R, t = self.cam_to_world[:3, :3], self.cam_to_world[:3, 3]
-        origins = t + xy[:, :1] * R[:, 0] + xy[:, 1:] * R[:, 1]
-        directions = np.broadcast_to(R[:, 2], origins.shape).copy()
-        return origins, directions, np.ones(len(origins))
+        n = self.resolution
+        origins = np.empty((n, n, 3))
+        # (t + x·R₀) + y·R₁ per pixel: column x, row y, summed in that order.
+        np.add((t + c[:, None] * R[:, 0])[None, :, :], (c[:, None] * R[:, 1])[:, None, :], out=origins)
+        origins = origins.reshape(n * n, 3)
+        directions = np.broadcast_to(R[:, 2].copy(), origins.shape)
+        depth_scale = np.broadcast_to(np.float64(1.0), (n * n,))
+        return origins, directions, depth_scale
+
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (n, 3) → pixel coordinates uv (n, 2) and depth below the camera z (n,)."""
@@ -404,13 +436,40 @@ def _class_mask(house: "House", names) -> np.ndarray:
     return np.array([in_classes(i.category, i.label, names) for i in house.instances], dtype=bool)
 
 
-def _layer_points(rays, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World points (n, 3) of the finite pixels of a planar depth image and their flat indices."""
-    origins, directions, depth_scale = rays
-    flat = np.asarray(depth, dtype=np.float64).ravel()
-    idx = np.flatnonzero(np.isfinite(flat))
-    t = flat[idx] / depth_scale[idx]
-    return origins[idx] + directions[idx] * t[:, None], idx
+def _room_codes(house: "House") -> tuple[tuple, np.ndarray]:
+    """The house's room ids sorted by ``str``, and (n_instances + 1,) int32 each instance's
+    index among them (-1: no room); the extra last entry (-1) is what instance -1 indexes."""
+    ids = [i.room_id for i in house.instances]
+    room_ids = tuple(sorted({r for r in ids if r is not None}, key=str))
+    code = {r: k for k, r in enumerate(room_ids)}
+    return room_ids, np.array([code.get(r, -1) for r in ids] + [-1], dtype=np.int32)
+
+
+def _frame_rays(camera: "Camera", frame: GravityFrame) -> np.ndarray:
+    """(3, H*W) float64: frame coordinates ``(right, up, forward)`` of each pixel's point at
+    planar depth 1, relative to the camera centre, row-major pixels.
+
+    The point of pixel (u, v) at planar depth z is z·K⁻¹[u, v, 1] in camera coordinates, so
+    its frame coordinates are z·A[u, v, 1] with A = axes·R·K⁻¹. With this table a layer's
+    points are a gather and a product per axis: no world points, no per-layer transform.
+    Stored per axis, so that gathers and the points' columns are contiguous.
+    """
+    H, W = camera.shape
+    A = frame.axes @ camera.cam_to_world[:3, :3] @ np.linalg.inv(camera.K)
+    u, v = np.arange(W) + 0.5, np.arange(H) + 0.5
+    table = np.empty((3, H, W))
+    np.add((A[:, 1:2] * v + A[:, 2:3])[:, :, None], (A[:, 0:1] * u)[:, None, :], out=table)
+    return table.reshape(3, H * W)
+
+
+def _take_columns(table: np.ndarray, idx: np.ndarray, out: np.ndarray) -> None:
+    """``out[:] = table[:, idx]`` for a (3, m) table, one contiguous row at a time.
+
+    ``mode="clip"`` (the indices are in range) lets ``take`` write straight into ``out``;
+    the default mode goes through a buffer.
+    """
+    for axis in range(3):
+        table[axis].take(idx, out=out[axis], mode="clip")
 
 
 def frontal_points(
@@ -420,37 +479,91 @@ def frontal_points(
 
     The floor height is the median world height of the D5 pixels whose class is floor,
     or the house's storey floor under the camera when the view shows no floor.
+
+    Every pass over a layer's pixels costs, so the points are built straight in the frame
+    from one per-view table (:func:`_frame_rays`) into one preallocated array, D2 and D4
+    reuse the gathers of D1 and D3 when they have the same pixels (as traced layers do),
+    and rooms are integer codes counted with ``bincount``.
     """
     if layers.shape != camera.shape:
         raise ValueError(f"layers are {layers.shape} pixels but the camera is {camera.shape} (H, W)")
-    rays = camera.rays()
-    rooms = np.array([i.room_id for i in house.instances] + [None], dtype=object)
+    H, W = camera.shape
+    rays = _frame_rays(camera, frame)
+    # Frame coordinates of the camera centre: zero for the camera's own gravity frame.
+    offset = frame.to_frame(camera.cam_to_world[None, :3, 3])[0]
+    room_ids, inst_room = _room_codes(house)
     excluded = np.append(_class_mask(house, config.room_excluded), False)
-    objects, room, skip = [], [], []
-    for layer, inst_layer in ((0, 0), (1, 0), (2, 1), (3, 1)):
-        pts, idx = _layer_points(rays, layers.depth[layer])
-        # -1 (no instance) indexes the appended "no room, not excluded" entry.
-        inst = np.asarray(layers.instance[inst_layer]).ravel()[idx]
-        objects.append(frame.to_frame(pts))
-        room.append(rooms[inst])
-        skip.append(excluded[inst])
-    env_pts, env_idx = _layer_points(rays, layers.depth[4])
-    env_up = frame.to_frame(env_pts)[:, 1]
-    visible = np.asarray(layers.instance[0]).ravel()
-    tops = [objects[0][:, 1], objects[1][:, 1], env_up]
-    if not sum(len(t) for t in tops):
+    depth = np.asarray(layers.depth).reshape(5, H * W)
+    instance = np.asarray(layers.instance).reshape(2, H * W)
+    finite = np.isfinite(depth)
+    pixels = [np.flatnonzero(finite[layer]) for layer in (0, 2, 4)]
+    # D2 is usually finite where D1 is, and D4 where D3 is: gather their rays once.
+    for layer in (1, 3):
+        same = np.array_equal(finite[layer], finite[layer - 1])
+        pixels.insert(layer, pixels[layer - 1] if same else np.flatnonzero(finite[layer]))
+
+    n = sum(len(p) for p in pixels[:4])
+    objects = np.empty((3, n))  # returned transposed: (n, 3) with contiguous columns
+    inst = np.empty(n, dtype=instance.dtype)
+    start = 0
+    for front, back, inst_layer in ((0, 1, 0), (2, 3, 1)):
+        i_front, i_back = pixels[front], pixels[back]
+        mid = start + len(i_front)
+        end = mid + len(i_back)
+        out_front, out_back = objects[:, start:mid], objects[:, mid:end]
+        _take_columns(rays, i_back, out_back)
+        instance[inst_layer].take(i_back, out=inst[mid:end], mode="clip")
+        if i_front is i_back:  # the same pixels: scale the back layer's rays
+            np.multiply(out_back, depth[front].take(i_front), out=out_front)
+            inst[start:mid] = inst[mid:end]
+        else:
+            _take_columns(rays, i_front, out_front)
+            out_front *= depth[front].take(i_front)
+            instance[inst_layer].take(i_front, out=inst[start:mid], mode="clip")
+        out_back *= depth[back].take(i_back)
+        start = end
+    if offset.any():
+        objects += offset[:, None]
+    env_idx = pixels[4]
+    env_category = np.asarray(layers.category[2]).reshape(H * W)
+    if len(env_idx) == H * W:  # the usual case: D5 everywhere, no gathers
+        envelope_z = depth[4].astype(np.float64)
+        env_up = np.multiply(rays[1], envelope_z, out=rays[1])  # the table is used up
+    else:
+        envelope_z = depth[4].take(env_idx).astype(np.float64)
+        env_up = rays[1].take(env_idx)
+        env_up *= envelope_z
+        env_category = env_category.take(env_idx)
+    if offset[1]:
+        env_up += offset[1]
+
+    n12 = len(pixels[0]) + len(pixels[1])
+    tops = [t for t in (objects[1, :n12], env_up) if len(t)]
+    if not tops:
         raise SceneforgeError("the frontal view sees no surface: cannot place an overhead camera")
+    # -1 (no instance) indexes the appended "no room, not excluded" entries.
+    object_room = inst_room.take(inst)
+    # Visible object pixels (D1 instance >= 0) vote for their instance's room. Usually they
+    # are all finite D1 pixels, whose rooms are at hand; else every pixel's room is looked up.
+    n1 = len(pixels[0])
+    if np.count_nonzero(instance[0] >= 0) == np.count_nonzero(inst[:n1] >= 0):
+        voters = object_room[:n1]
+    else:
+        voters = inst_room.take(instance[0])
+    room_votes = np.bincount(voters + 1, minlength=len(room_ids) + 1)[1:]
     points = FrontalPoints(
-        objects=np.concatenate(objects),
-        object_room=np.concatenate(room),
-        object_excluded=np.concatenate(skip),
-        envelope_z=np.asarray(layers.depth[4], dtype=np.float64).ravel()[env_idx],
-        voter_rooms=rooms[visible[visible >= 0]],
-        top=float(max(t.max() for t in tops if len(t))),
+        objects=objects.T,
+        object_room=object_room,
+        object_excluded=excluded.take(inst),
+        envelope_z=envelope_z,
+        room_votes=room_votes,
+        room_ids=room_ids,
+        top=float(max(t.max() for t in tops)),
     )
-    floor = np.asarray(layers.category[2]).ravel()[env_idx] == FLOOR
+    floor = env_category == FLOOR
     if floor.any():
-        floor_y = float(np.median(env_pts[floor, 1]))
+        # The frame's up axis is world +Y from the frame origin.
+        floor_y = float(np.median(env_up[floor], overwrite_input=True)) + float(frame.origin[1])
     else:
         floor_y = level_floor_y(house, float(frame.origin[1]))
     return points, floor_y
@@ -473,7 +586,7 @@ def place_overhead_camera(
         depth_statistics_box(points.objects, config),
         envelope_frustum_box(points.envelope_z, tan_half_fov, config),
         majority_room_box(points.objects, points.object_room, points.object_excluded,
-                          points.voter_rooms, config),
+                          points.room_votes, points.room_ids, config),
     )
     candidates, box = combine(candidates, config)
     square = box.square()

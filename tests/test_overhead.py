@@ -13,7 +13,7 @@ from sceneforge.cli.main import cli
 from sceneforge.cameras import look_at_camera
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses.native import write_house
-from sceneforge.layers import frontal_layers
+from sceneforge.layers import Layers, frontal_layers
 from sceneforge.overhead import (
     Box,
     Candidate,
@@ -24,6 +24,7 @@ from sceneforge.overhead import (
     combine,
     depth_statistics_box,
     envelope_frustum_box,
+    frontal_points,
     gravity_frame,
     majority_room_box,
     overhead_camera,
@@ -53,10 +54,11 @@ def hand_view():
     objects = points_at((20, 0.0, 3.0), (20, 2.0, 7.0))
     return FrontalPoints(
         objects=objects,
-        object_room=np.array(["r0"] * 40, dtype=object),
+        object_room=np.zeros(40, dtype=np.int32),
         object_excluded=np.zeros(40, dtype=bool),
         envelope_z=np.full(10, 5.0),
-        voter_rooms=np.array(["r0"] * 30, dtype=object),
+        room_votes=np.array([30]),
+        room_ids=("r0",),
         top=1.2,
     )
 
@@ -100,7 +102,8 @@ def test_overhead_camera_rays_are_parallel_through_pixel_centres():
     cam = place_overhead_camera(frame_looking_down_minus_z(), hand_view(), tan_half_fov=0.5,
                                 floor_y=0.0, config=OverheadConfig(resolution=4))
     origins, directions, scale = cam.rays()
-    assert origins.shape == (16, 3) and directions.shape == (16, 3)
+    assert origins.shape == (16, 3) and directions.shape == (16, 3) and scale.shape == (16,)
+    assert origins.dtype == directions.dtype == scale.dtype == np.float64
     np.testing.assert_array_equal(directions, np.tile([0.0, -1.0, 0.0], (16, 1)))
     np.testing.assert_array_equal(scale, 1.0)
     # Pixel (row 0, col 0) is the far-left corner: half a pixel (2 × 2.25 / 4 / 2) in from
@@ -162,12 +165,17 @@ def test_no_usable_candidate_is_an_error():
 
 
 def room_inputs(votes, rooms, excluded=None, groups=((20, 0.0, 3.0),)):
+    """majority_room_box's inputs from the room name of each voting pixel and of each point
+    (None: no room), coded as frontal_points codes them: indices into the sorted names."""
     objects = points_at(*groups)
+    room_ids = tuple(sorted({r for r in [*votes, *rooms] if r is not None}))
+    code = {r: k for k, r in enumerate(room_ids)}
     return dict(
         objects=objects,
-        object_room=np.array(rooms, dtype=object),
+        object_room=np.array([code.get(r, -1) for r in rooms], dtype=np.int32),
         object_excluded=np.zeros(len(objects), bool) if excluded is None else np.array(excluded),
-        voter_rooms=np.array(votes, dtype=object),
+        room_votes=np.array([votes.count(r) for r in room_ids], dtype=np.int64),
+        room_ids=room_ids,
     )
 
 
@@ -194,6 +202,20 @@ def test_majority_room_uses_only_the_winning_room_and_the_distance_band():
     # bbox right [0, 1], forward [3, 4]; half 0.5 × 1.05 = 0.525 around (0.5, 3.5).
     np.testing.assert_allclose(c.box.lo, [0.5 - 0.525, 3.5 - 0.525])
     np.testing.assert_allclose(c.box.hi, [0.5 + 0.525, 3.5 + 0.525])
+
+
+def test_majority_room_ties_go_to_the_smallest_room_id():
+    # 20 votes each for "r2" and "r10": "r10" < "r2" as strings, so r10's points are boxed.
+    groups = ((20, 0.0, 3.0), (20, 4.0, 6.0))
+    rooms = ["r10"] * 20 + ["r2"] * 20
+    c = majority_room_box(**room_inputs(["r2"] * 20 + ["r10"] * 20 + [None] * 5, rooms,
+                                        groups=groups), config=CONFIG)
+    assert c.n_points == 20
+    np.testing.assert_allclose(c.box.center, [0.0, 3.0])
+    # One more vote for r2 and it wins.
+    c = majority_room_box(**room_inputs(["r2"] * 21 + ["r10"] * 20, rooms, groups=groups),
+                          config=CONFIG)
+    np.testing.assert_allclose(c.box.center, [4.0, 6.0])
 
 
 def test_box_square_pads_the_short_side():
@@ -269,6 +291,48 @@ def test_box_height_map_is_its_height_above_the_floor_and_nan_on_bare_floor():
     hit = np.isfinite(truth.height)
     np.testing.assert_allclose(truth.height[hit], over.params[2] - truth.layers.depth[0][hit],
                                atol=1e-5)
+
+
+@pytest.mark.parametrize("holes", [(), (0, 1, 3, 4)])
+def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(holes):
+    # A rolled camera, a second room, and (second case) random holes in D1, D2, D4 and D5,
+    # so that layers do not share pixels and some D1 holes keep a visible instance: the
+    # points must still be the rays' points at the planar depths, taken to the frame.
+    house = room_with_a_box()
+    box_instance(house, "shelf", 10, (0.6, 1.2, 0.4), (1.8, 0.6, -2.0), room_id="r1")
+    camera = look_at_camera((0.3, 1.4, 2.2), (0.2, -0.3, -1.0), up=(0.15, 1.0, 0.0),
+                            width=80, height=60)
+    layers = frontal_layers(house, camera, HouseTracer(house))
+    depth = layers.depth.copy()
+    rng = np.random.default_rng(0)
+    for k in holes:
+        depth[k][rng.random(depth[k].shape) < 0.2] = np.nan
+    layers = Layers(depth, layers.category, layers.instance, layers.normal)
+    frame = gravity_frame(camera)
+    points, floor_y = frontal_points(house, camera, layers, frame, CONFIG)
+
+    origins, directions, scale = camera.rays()
+    finite = [np.isfinite(d.ravel()) for d in depth]
+    world = [origins[f] + directions[f] * (d.ravel()[f] / scale[f])[:, None]
+             for d, f in zip(depth, finite)]
+    np.testing.assert_allclose(points.objects, frame.to_frame(np.concatenate(world[:4])),
+                               atol=1e-12)
+    np.testing.assert_array_equal(points.envelope_z, depth[4].ravel()[finite[4]])
+    top = max(frame.to_frame(world[k])[:, 1].max() for k in (0, 1, 4))
+    assert points.top == pytest.approx(top, abs=1e-12)
+    floor = layers.category[2].ravel()[finite[4]] == 2
+    assert floor.any()
+    assert floor_y == pytest.approx(np.median(world[4][floor, 1]), abs=1e-12)
+    # Rooms are indices into the sorted room ids; every visible D1 pixel votes.
+    assert points.room_ids == ("r0", "r1")
+    rooms = np.array([i.room_id for i in house.instances])
+    inst = np.concatenate([layers.instance[k // 2].ravel()[finite[k]] for k in range(4)])
+    np.testing.assert_array_equal(np.array(points.room_ids)[points.object_room], rooms[inst])
+    lamp = np.array([i.label == "chandelier" for i in house.instances])
+    np.testing.assert_array_equal(points.object_excluded, lamp[inst])
+    visible = layers.instance[0][layers.instance[0] >= 0]
+    assert points.room_votes.tolist() == [int((rooms[visible] == r).sum()) for r in ("r0", "r1")]
+    assert points.room_votes.min() > 0
 
 
 def overhead_at(height, resolution=16):
