@@ -14,6 +14,7 @@ house).
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -147,21 +148,23 @@ def _warm() -> None:
     import open3d  # noqa: F401  (its import takes about a second: not part of a view)
 
 
-def _views_of(house, views, config):
-    tr = tracer(house, "open3d")
+def _views_of(house, views, config, threads):
+    tr = HouseTracer(house, threads=threads)
     for cam in views:
         compute_view(house, cam, config, tr)
 
 
 def throughput(house, views, n_jobs: int = 2, config: ViewConfig | None = None) -> float:
-    """Seconds per view when ``n_jobs`` processes share the views (each builds its tracer)."""
+    """Seconds per view when ``n_jobs`` processes share the views (each builds its tracer
+    and, as the render pipeline's workers do, traces with its share of the cores)."""
     from joblib import Parallel, delayed
 
     config = config or ViewConfig()
     with Parallel(n_jobs=n_jobs) as pool:
         pool(delayed(_warm)() for _ in range(n_jobs))  # start the workers before timing
         t0 = time.perf_counter()
-        pool(delayed(_views_of)(house, views[k::n_jobs], config) for k in range(n_jobs))
+        threads = max(1, (os.cpu_count() or 1) // n_jobs)
+        pool(delayed(_views_of)(house, views[k::n_jobs], config, threads) for k in range(n_jobs))
         return (time.perf_counter() - t0) / len(views)
 
 

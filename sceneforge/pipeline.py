@@ -56,6 +56,15 @@ STAGING = "_staging"
 _WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1"}
 
 
+def _worker_env(workers: int) -> dict[str, str]:
+    """Environment of ``workers`` local worker processes: single-threaded BLAS, and the
+    cores shared out among the workers' ray tracers (Open3D would otherwise give each
+    worker a thread per core: on 2 cores, 2 workers ran no faster than 1)."""
+    from .raytrace import THREADS_ENV
+
+    return {**_WORKER_ENV, THREADS_ENV: str(max(1, (os.cpu_count() or 1) // workers))}
+
+
 class Progress(Protocol):
     """Receives progress: ``start`` once per step, then ``advance`` as work completes."""
 
@@ -488,7 +497,7 @@ def executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Callabl
                 for future in futures:
                     future.cancel()
 
-        with _environ(_WORKER_ENV), ProcessPoolExecutor(workers, multiprocessing.get_context("spawn")) as pool:
+        with _environ(_worker_env(workers)), ProcessPoolExecutor(workers, multiprocessing.get_context("spawn")) as pool:
             yield run
 
 
@@ -500,8 +509,10 @@ def _dask(workers: int, scheduler: str):
         raise MissingDependencyError("dask[distributed]", "--scheduler", "pip install sceneforge[store]") from e
     cluster = None
     if scheduler == "local":
-        # its nannies start workers with single-threaded BLAS (Dask's pre-spawn environment)
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        # its nannies start workers with single-threaded BLAS (Dask's pre-spawn environment);
+        # the workers inherit the tracers' share of the cores
+        with _environ(_worker_env(workers)):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
     try:
         client = Client(cluster if cluster is not None else scheduler, timeout="30s")
     except (OSError, TimeoutError) as e:

@@ -283,3 +283,18 @@ def test_instance_subset_equals_dropping_the_other_instances(backend, seed):
     assert len(got.t) < len(everything.t)
     with pytest.raises(ValueError, match="instances must be"):
         tracer.all_hits(origins, directions, instances=subset[:-1])
+
+
+def test_engine_threads_do_not_change_the_hits(monkeypatch):
+    house = random_house(7)
+    origins, directions = random_rays(np.random.default_rng(11), 3000)
+    every_core = HouseTracer(house).frontal_query(origins, directions)
+    monkeypatch.setenv("SCENEFORGE_TRACE_THREADS", "1")
+    one = HouseTracer(house)
+    assert one.threads == 1 and HouseTracer(house, threads=2).threads == 2
+    single = one.frontal_query(origins, directions)
+    for name in ("offsets", "t", "instance", "triangle"):
+        np.testing.assert_array_equal(getattr(single.objects, name), getattr(every_core.objects, name))
+    np.testing.assert_array_equal(single.closing.face, every_core.closing.face)
+    with pytest.raises(ValueError, match="threads"):
+        HouseTracer(house, threads=-1)

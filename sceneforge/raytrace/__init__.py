@@ -28,6 +28,7 @@ does): the plane-distance terms are then computed once per face instead of per h
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -43,6 +44,8 @@ __all__ = ["BACKENDS", "Backend", "FirstHit", "FrontalHits", "Hits", "HouseTrace
 
 #: Engine names accepted by :class:`HouseTracer`.
 BACKENDS = ("open3d", "reference")
+#: environment variable giving :class:`HouseTracer`'s default engine thread count
+THREADS_ENV = "SCENEFORGE_TRACE_THREADS"
 
 
 @dataclass
@@ -389,17 +392,26 @@ class HouseTracer:
 
     house   : the house; instance ``i`` of the results is ``house.instances[i]``
     backend : ``"open3d"`` (fast, default) or ``"reference"`` (slow numpy, for tests)
+    threads : threads the engine may use per query; 0 (default) = every core, unless the
+              ``SCENEFORGE_TRACE_THREADS`` environment variable says otherwise (the render
+              pipeline sets it to cores ÷ workers in its worker processes, so that workers
+              do not fight over the cores). Results do not depend on it.
     """
 
-    def __init__(self, house: "House", backend: str = "open3d"):
+    def __init__(self, house: "House", backend: str = "open3d", threads: int | None = None):
         if backend not in BACKENDS:
             raise ValueError(f"unknown ray-tracing backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+        if threads is None:
+            threads = int(os.environ.get(THREADS_ENV, "0") or 0)
+        if threads < 0:
+            raise ValueError(f"threads must be >= 0 (0: every core), got {threads}")
         self.house_id = house.id
+        self.threads = threads
         self.triangles = HouseTriangles.from_house(house)
         if backend == "open3d":
             from .open3d_backend import Open3DBackend
 
-            self.backend: Backend = Open3DBackend(self.triangles)
+            self.backend: Backend = Open3DBackend(self.triangles, threads)
         else:
             from .reference import ReferenceBackend
 

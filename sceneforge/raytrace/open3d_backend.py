@@ -30,7 +30,7 @@ _INVALID_ID = np.iinfo(np.uint32).max
 class Open3DBackend:
     name = "open3d"
 
-    def __init__(self, triangles: HouseTriangles):
+    def __init__(self, triangles: HouseTriangles, threads: int = 0):
         try:
             import open3d as o3d
         except ImportError:
@@ -38,6 +38,7 @@ class Open3DBackend:
                 "open3d", "fast ray tracing", "pip install 'sceneforge[trace]'"
             ) from None
         self._o3d = o3d
+        self._threads = int(threads)  # Open3D's nthreads: 0 = every core
         self._triangles = triangles
         self._shift = 0.5 * (triangles.vertices.min(axis=0) + triangles.vertices.max(axis=0))
         self._first_face = triangles.first_face
@@ -91,7 +92,7 @@ class Open3DBackend:
         ray_ids, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
         if len(rays):
             for scene, members in self._selected(instances):
-                found = scene.list_intersections(self._query(rays))
+                found = scene.list_intersections(self._query(rays), nthreads=self._threads)
                 ray = found["ray_ids"].numpy()
                 geometry = found["geometry_ids"].numpy()
                 primitive = found["primitive_ids"].numpy()
@@ -111,7 +112,7 @@ class Open3DBackend:
         query = self._query(rays)
         nearest = np.full(len(rays), np.inf, dtype=np.float32)
         for scene, members in self._selected(instances):
-            found = scene.cast_rays(query)
+            found = scene.cast_rays(query, nthreads=self._threads)
             t = found["t_hit"].numpy()
             geometry = found["geometry_ids"].numpy()
             # strict: at equal distances the object, queried first, stays
@@ -126,5 +127,5 @@ class Open3DBackend:
         if len(points):
             query = self._o3d.core.Tensor(np.ascontiguousarray(points - self._shift, dtype=np.float32))
             for scene, _ in self._selected(None):
-                out = np.minimum(out, scene.compute_distance(query).numpy().astype(np.float64))
+                out = np.minimum(out, scene.compute_distance(query, nthreads=self._threads).numpy().astype(np.float64))
         return out
