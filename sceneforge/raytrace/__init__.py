@@ -338,21 +338,13 @@ def _collect_hits(
     order = _order_by_ray_and_distance(ray, t, face)
     ray = np.repeat(np.arange(n_rays, dtype=np.int64), counts)  # == ray[order]
     t = t[order]
-    instance = triangles.instance[face[order]]
+    face = face[order]
+    instance = triangles.instance[face]
 
-    # compare each hit with the one `shift` places before it; once no pair of a ray is
-    # within tol at some shift, none is at a larger one (distances ascend)
-    duplicate = np.zeros(len(t), dtype=bool)
-    shift = 1
-    while shift < len(t):
-        close = (ray[shift:] == ray[:-shift]) & (t[shift:] - t[:-shift] <= tol.same_instance_hit)
-        if not close.any():
-            break
-        duplicate[shift:] |= close & (instance[shift:] == instance[:-shift])
-        shift += 1
-    if duplicate.any():
+    duplicate = _same_instance_repeats(ray, t, instance)
+    if duplicate is not None:
         keep = ~duplicate
-        order, t, instance = order[keep], t[keep], instance[keep]
+        order, t, face, instance = order[keep], t[keep], face[keep], instance[keep]
         counts = np.bincount(ray[keep], minlength=n_rays)
 
     offsets = np.zeros(n_rays + 1, dtype=np.int64)
@@ -361,9 +353,32 @@ def _collect_hits(
         offsets=offsets,
         t=t,
         instance=instance.astype(np.int32),
-        triangle=face[order] - triangles.first_face[instance],
+        triangle=face - triangles.first_face[instance],
         front_facing=cos[order] < 0,
     )
+
+
+def _same_instance_repeats(ray: np.ndarray, t: np.ndarray, instance: np.ndarray) -> np.ndarray | None:
+    """(k,) bool hits within ``tol.same_instance_hit`` after an earlier hit of the same ray
+    and instance (hits sorted by ray, then distance), or None when there is none.
+
+    Each hit is compared with the one ``shift`` places before it. Distances ascend, so a
+    hit can only be close to the one two places back if it is close to the one just before,
+    and so on: after the first shift, only the (few) hits still in a close run are compared.
+    """
+    tol_t = tol.same_instance_hit
+    close = np.flatnonzero((ray[1:] == ray[:-1]) & (t[1:] - t[:-1] <= tol_t)) + 1
+    if not len(close):
+        return None
+    duplicate = np.zeros(len(t), dtype=bool)
+    duplicate[close[instance[close] == instance[close - 1]]] = True
+    shift = 2
+    while len(close := close[close >= shift]):
+        back = close - shift
+        close = close[(ray[close] == ray[back]) & (t[close] - t[back] <= tol_t)]
+        duplicate[close[instance[close] == instance[close - shift]]] = True
+        shift += 1
+    return duplicate if duplicate.any() else None
 
 
 def _order_by_ray_and_distance(ray: np.ndarray, t: np.ndarray, face: np.ndarray) -> np.ndarray:

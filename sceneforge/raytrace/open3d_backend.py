@@ -62,14 +62,15 @@ class Open3DBackend:
         return scene
 
     def _selected(self, instances: np.ndarray | None):
-        """The (scene, members) pairs a query on the ``instances`` (n,) bool mask (None = all)
-        runs on; objects before envelope."""
+        """The (scene, base) pairs a query on the ``instances`` (n,) bool mask (None = all)
+        runs on, objects before envelope; ``base[g]`` is the index in ``HouseTriangles.faces``
+        of the first face of the scene's geometry ``g``."""
         if instances is None:
             return self._selected(~self._triangles.envelope) + self._selected(self._triangles.envelope)
         key = np.asarray(instances, dtype=bool).tobytes()
         if key not in self._scenes:
             self._scenes[key] = [
-                (self._scene(members), members)
+                (self._scene(members), self._first_face[members])
                 for flag in (False, True)
                 if len(members := np.flatnonzero(instances & (self._triangles.envelope == flag)))
             ]
@@ -89,9 +90,9 @@ class Open3DBackend:
     def intersect_all(
         self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        ray_ids, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+        ray_ids, faces = [], []
         if len(rays):
-            for scene, members in self._selected(instances):
+            for scene, base in self._selected(instances):
                 found = scene.list_intersections(self._query(rays), nthreads=self._threads)
                 ray = found["ray_ids"].numpy()
                 geometry = found["geometry_ids"].numpy()
@@ -102,8 +103,10 @@ class Open3DBackend:
                     near = found["t_hit"].numpy() <= t_max[ray] + T_MAX_MARGIN
                     ray, geometry, primitive = ray[near], geometry[near], primitive[near]
                 ray_ids.append(ray.astype(np.int64))
-                faces.append(self._first_face[members[geometry]] + primitive)
-        return np.concatenate(ray_ids), np.concatenate(faces)
+                faces.append(base[geometry] + primitive)
+        if len(faces) == 1:
+            return ray_ids[0], faces[0]
+        return np.concatenate([np.zeros(0, np.int64)] + ray_ids), np.concatenate([np.zeros(0, np.int64)] + faces)
 
     def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
         face = np.full(len(rays), -1, dtype=np.int64)
@@ -111,14 +114,14 @@ class Open3DBackend:
             return face
         query = self._query(rays)
         nearest = np.full(len(rays), np.inf, dtype=np.float32)
-        for scene, members in self._selected(instances):
+        for scene, base in self._selected(instances):
             found = scene.cast_rays(query, nthreads=self._threads)
             t = found["t_hit"].numpy()
             geometry = found["geometry_ids"].numpy()
             # strict: at equal distances the object, queried first, stays
             better = (geometry != _INVALID_ID) & (t < nearest)
             primitive = found["primitive_ids"].numpy()[better]
-            face[better] = self._first_face[members[geometry[better]]] + primitive
+            face[better] = base[geometry[better]] + primitive
             nearest[better] = t[better]
         return face
 
