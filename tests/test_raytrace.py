@@ -298,3 +298,22 @@ def test_engine_threads_do_not_change_the_hits(monkeypatch):
     np.testing.assert_array_equal(single.closing.face, every_core.closing.face)
     with pytest.raises(ValueError, match="threads"):
         HouseTracer(house, threads=-1)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_envelope_hits_nearer_than_envelope_near_do_not_close_the_ray(backend):
+    """The overhead view ignores floors within 0.5 m below its camera: the ray is closed by
+    the next envelope hit beyond, and objects between the two are kept."""
+    h = House(id="storeys", instances=[])
+    upper = add_box(h, "upper_floor", 2, (0, 2.9, 0), (2, 3.0, 2))
+    add_box(h, "table", 7, (0.5, 0.0, 0.5), (1.0, 0.8, 1.0))
+    lower = add_box(h, "lower_floor", 2, (0, -0.1, 0), (2, 0.0, 2))
+    tracer = HouseTracer(h, backend=backend)
+    origins = [[0.75, 3.3, 0.75], [1.5, 3.3, 1.5], [1.5, 3.8, 1.5]]
+    down = [[0.0, -1.0, 0.0]] * 3
+    query = tracer.frontal_query(origins, down, envelope_near=0.5)
+    # rays 0 and 1 start 0.3 m above the upper floor: it is skipped, the lower floor closes
+    np.testing.assert_array_equal(query.closing.instance, [lower.id, lower.id, upper.id])
+    np.testing.assert_allclose(query.closing.t, [3.3, 3.3, 0.8])
+    np.testing.assert_array_equal(query.objects.counts, [2, 0, 0])  # the table's top and bottom
+    np.testing.assert_allclose(query.objects.t, [2.5, 3.3])

@@ -494,15 +494,13 @@ class HouseTracer:
         """Each ray's first hit among the ``envelope`` instances at least ``envelope_near``
         along it."""
         face = self.backend.intersect_first(rays, envelope)
-        near = np.zeros(0, dtype=np.int64)
-        if envelope_near > 0:
-            walled = np.flatnonzero(face >= 0)
-            t = _plane_distance(self.triangles, face[walled], walled, rays)[0]
-            near = walled[t < envelope_near]
+        closing = self._first_hit(rays, face)
+        near = np.flatnonzero(closing.t < envelope_near) if envelope_near > 0 else ()
         if len(near):  # rare (a floor right under an overhead camera): look again from past it
             again = Rays.check(rays.origins[near] + envelope_near * rays.directions[near], rays.directions[near])
             face[near] = self.backend.intersect_first(again, envelope)
-        return self._first_hit(rays, face)
+            closing = self._first_hit(rays, face)
+        return closing
 
     def first_hit(self, origins, directions) -> FirstHit:
         """The nearest hit of each ray (origins, directions: (n, 3) float, unit directions)."""
