@@ -5,12 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sceneforge.cameras import look_at_camera
+from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import tol
 from sceneforge.frustum import (
     ViewMeshConfig,
     _clipped_meshes,
     _envelope_limit,
+    _lens,
+    _settle,
     _unique_rows,
     clip_triangles,
     clip_triangles_by_plane,
@@ -20,7 +22,7 @@ from sceneforge.frustum import (
     view_mesh,
     weld,
 )
-from sceneforge.houses import House, Room, make_instance
+from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.raytrace import HouseTracer
 
@@ -268,7 +270,8 @@ def plain_unique_rows(points):
     """np.unique(points, axis=0, return_inverse=True) by lexsort, first of equal rows."""
     order = np.lexsort(points.T[::-1])
     rows = points[order]
-    new = np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)]
+    new = np.ones(len(points), dtype=bool)
+    new[1:] = (rows[1:] != rows[:-1]).any(axis=1)
     inverse = np.empty(len(points), dtype=np.int32)
     inverse[order] = np.cumsum(new) - 1
     return rows[new], inverse
@@ -381,3 +384,101 @@ def test_the_meshes_of_a_view_come_out_as_each_would_alone():
         for field in ("vertices", "faces", "instance"):
             np.testing.assert_array_equal(getattr(mesh, field), getattr(alone, field))
     assert len(together[1].faces) > 2  # the back wall was refined
+
+
+def plain_clipped_mesh(house, ids, cam, planes, d5, config):
+    """A mesh of _clipped_meshes in its plainest form: every face of the instances clipped
+    (clip_triangles) and tested against the envelope (drop_behind_envelope), then welded
+    by comparing coordinates: a piece's corner that equals a corner of its face is that
+    vertex, the other points are new vertices, unique and sorted after the instances'."""
+    instances = [house.instances[i] for i in ids]
+    if not instances:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), np.zeros(0, dtype=np.int32)
+    vertices = np.concatenate([inst.vertices for inst in instances])
+    base = np.cumsum([0] + [len(inst.vertices) for inst in instances[:-1]])
+    corners = np.concatenate([inst.faces + b for inst, b in zip(instances, base)])
+    owner = np.concatenate([np.full(len(inst.faces), i, dtype=np.int32) for i, inst in zip(ids, instances)])
+    cut, source = clip_triangles(vertices[corners], planes, config.clip_tolerance)
+    pieces, kept = drop_behind_envelope(cut, cam, d5, config)
+    source = source[kept]
+    parent = vertices[corners[source]]
+    equal = (pieces[:, :, None] == parent[:, None]).all(axis=3)  # (piece, its corner, face corner)
+    index = np.take_along_axis(corners[source], equal.argmax(axis=2), axis=1)
+    uncut = (pieces == parent).all(axis=(1, 2))
+    index[uncut] = corners[source[uncut]]
+    fresh = ~equal.any(axis=2)
+    new_vertices, new_index = plain_unique_rows(pieces[fresh])
+    index[fresh] = len(vertices) + new_index
+    used, faces = np.unique(index, return_inverse=True)
+    table = np.concatenate([vertices, new_vertices])
+    return table[used], faces.reshape(-1, 3).astype(np.int32), owner[source]
+
+
+def toy_house_views():
+    """Two views of each bundled toy house, small enough to trace at once."""
+    for house in (load(source) for source in discover(BUNDLED_TOY)):
+        cameras, _ = sample_cameras(house, 2, np.random.default_rng(0), CameraSamplerConfig())
+        tracer = HouseTracer(house)
+        for cam in cameras:
+            cam = cam.resized(80, 60)
+            yield house, cam, frontal_layers(house, cam, tracer)
+
+
+def assert_plain_meshes(house, cam, d5, id_lists, config):
+    planes = frustum_planes(cam, config.near)
+    limit = _envelope_limit(d5, config.behind_envelope)
+    meshes = _clipped_meshes(house, id_lists, cam, planes, d5, limit, config)
+    for mesh, ids in zip(meshes, id_lists):
+        vertices, faces, instance = plain_clipped_mesh(house, ids, cam, planes, d5, config)
+        np.testing.assert_array_equal(mesh.vertices, vertices)
+        np.testing.assert_array_equal(mesh.faces, faces)
+        np.testing.assert_array_equal(mesh.instance, instance)
+        assert mesh.vertices.dtype == np.float64
+        assert mesh.faces.dtype == mesh.instance.dtype == np.int32
+    return meshes
+
+
+def settled(house, cam, d5, ids, config):
+    """How many faces _settle keeps, passes on as having a corner behind D5 and as crossing
+    a plane, and the instances it skips as outside."""
+    limit = _envelope_limit(d5, config.behind_envelope)
+    soup = _settle(house, ids, frustum_planes(cam, config.near), cam, _lens(cam, d5.shape), limit,
+                   config.clip_tolerance)
+    return np.array([len(soup.kept), len(soup.hidden), len(soup.cross)]), sorted(set(ids) - set(soup.ids.tolist()))
+
+
+@pytest.mark.parametrize("max_edge", [None, 1.0, 4.0])
+def test_clipped_meshes_settle_faces_by_vertex_as_the_plain_pipeline_does(max_edge):
+    # _clipped_meshes keeps faces wholly inside and in front of D5, and drops faces wholly
+    # outside a plane, from tests on their vertices: bit for bit what clipping and testing
+    # every face gives. The occluded view with the windowed occluder of the test above:
+    # faces kept, hidden, partly hidden, cut and wholly hidden.
+    config = ViewMeshConfig(max_edge_pixels=max_edge)
+    house, cam, layers = half_occluded_view()
+    d5 = np.full_like(layers.depth[4], 1.0)
+    d5[9:21, 12:28] = layers.depth[4][9:21, 12:28]
+    d5[2:6, 30:36] = np.nan
+    gaps = np.random.default_rng(1).random(d5.shape) < 0.05
+    d5[gaps] = layers.depth[4][gaps]
+    # An instance behind the camera is skipped; one outside a plane by half the tolerance
+    # is not; no instances, no faces.
+    v, f = quad(-10, 10, -10, 10, 1.0)
+    make_instance(house, name="behind", category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    v, f = quad(-2, -0.8 - 0.5 * tol.clip, -1, 1, -2.0)  # the left plane is at x = -0.8
+    make_instance(house, name="edge", category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    counts, skipped = settled(house, cam, d5, [0, 1, 2, 3, 4, 5], config)
+    assert (counts > 0).all() and skipped == [4]
+    objects, _, empty = assert_plain_meshes(house, cam, d5, [[2, 3], [0, 1, 4, 5], []], config)
+    assert len(objects.faces) and not len(empty.faces)
+
+
+def test_clipped_meshes_of_toy_houses_match_the_plain_pipeline():
+    config = ViewMeshConfig()
+    counts = np.zeros(3, dtype=np.int64)
+    for house, cam, layers in toy_house_views():
+        inst = np.asarray(layers.instance)
+        ids = [np.unique(inst[inst >= 0]).tolist(), [k for k, i in enumerate(house.instances) if i.envelope]]
+        d5 = np.asarray(layers.depth[4])
+        assert_plain_meshes(house, cam, d5, ids, config)
+        counts += sum(settled(house, cam, d5, one, config)[0] for one in ids)
+    assert (counts > 0).all()
