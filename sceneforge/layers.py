@@ -273,6 +273,8 @@ def frontal_normals(hits: "FrontalHits", tracer: "HouseTracer", camera: "Camera"
     else:
         out[:, hit] = normals
     return out.T
+
+
 def frontal_layers(house: "House", camera: "Camera", tracer: "HouseTracer | None" = None) -> Layers:
     """D1..D5, classes, instances and first-hit normals of one view of ``house``.
 

@@ -255,7 +255,6 @@ def depth_statistics_box(objects: np.ndarray, config: OverheadConfig) -> Candida
     return Candidate(name, Box(mean - half, mean + half), 1.0, None, len(pts))
 
 
-
 def envelope_frustum_box(
     envelope_z: np.ndarray, tan_half_fov: float, config: OverheadConfig
 ) -> Candidate:
@@ -413,7 +412,6 @@ class OverheadCamera:
         directions = np.broadcast_to(R[:, 2].copy(), origins.shape)
         depth_scale = np.broadcast_to(np.float64(1.0), (n * n,))
         return origins, directions, depth_scale
-
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (n, 3) → pixel coordinates uv (n, 2) and depth below the camera z (n,)."""

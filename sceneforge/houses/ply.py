@@ -249,7 +249,6 @@ def _ply_colors(face: dict, vertex: dict) -> tuple[np.ndarray | None, bool]:
     return None, False
 
 
-
 # --------------------------------------------------------------------------- writing
 
 
