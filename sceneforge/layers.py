@@ -226,23 +226,21 @@ def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_catego
 
 
 def first_hit_normals(hits: "Hits", tracer: "HouseTracer", camera: "Camera") -> np.ndarray:
-    """(H*W, 3) float64 camera-frame normal of each ray's first hit, facing the camera; NaN
-    where the ray hits nothing."""
+    """(H*W, 3) float32 camera-frame normal of each ray's first hit, facing the camera; NaN
+    where the ray hits nothing (see :func:`_camera_normals` for the layout)."""
+    face = np.full(hits.n_rays, -1, dtype=np.int64)
+    front = np.zeros(hits.n_rays, dtype=bool)
     has = hits.counts > 0
     first = hits.offsets[:-1][has]
-    n_world = tracer.face_normals(hits.instance[first], hits.triangle[first])
-    n_world *= np.where(hits.front_facing[first], 1.0, -1.0)[:, None]
-    out = np.full((hits.n_rays, 3), np.nan)
-    out[has] = n_world @ camera.cam_to_world[:3, :3]
-    return out
+    face[has] = tracer.triangles.global_index(hits.instance[first], hits.triangle[first])
+    front[has] = hits.front_facing[first]
+    return _camera_normals(tracer.triangles, face, front, camera)
 
 
 def frontal_normals(hits: "FrontalHits", tracer: "HouseTracer", camera: "Camera") -> np.ndarray:
-    """(H*W, 3) float32 camera-frame normal of each ray's first hit, facing the camera; NaN
-    where the ray hits nothing. The same as :func:`first_hit_normals` on the merged hits
-    (rounded to float32): the first object hit unless the closing hit is nearer (exact
-    ties: lower face index). The result is a transposed view of a (3, H*W) array, the
-    layout :class:`Layers` stores."""
+    """:func:`first_hit_normals` of a :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`:
+    a ray's first hit is its first object hit unless the closing hit is nearer (exact ties:
+    lower face index), as in the merged, sorted hits."""
     objects, closing = hits.objects, hits.closing
     tri = tracer.triangles
     has = objects.counts > 0
@@ -250,14 +248,20 @@ def frontal_normals(hits: "FrontalHits", tracer: "HouseTracer", camera: "Camera"
     first = objects.offsets[:-1][has]
     face = closing.face.copy()
     front = closing.front_facing.copy()
-    obj_face = tri.first_face[objects.instance[first]] + objects.triangle[first]
+    obj_face = tri.global_index(objects.instance[first], objects.triangle[first])
     t_obj, t_close = objects.t[first], closing.t[rays]
     # NaN closing distance (no envelope hit) compares False: the object is first
     use = ~((t_close < t_obj) | ((t_close == t_obj) & (face[rays] < obj_face)))
     face[rays[use]] = obj_face[use]
     front[rays[use]] = objects.front_facing[first][use]
+    return _camera_normals(tri, face, front, camera)
 
-    # camera-frame normals: rotate every face's once when there are fewer faces than rays
+
+def _camera_normals(tri, face: np.ndarray, front: np.ndarray, camera: "Camera") -> np.ndarray:
+    """(n, 3) float32 camera-frame winding normals of faces ``face`` (n,) (-1: none, NaN),
+    flipped where ``front`` is False so that they face the camera. A transposed view of a
+    (3, n) array, the layout :class:`Layers` stores. Every face's normal is rotated once
+    when there are fewer faces than rays, else each ray's."""
     R = camera.cam_to_world[:3, :3]
     out = np.full((3, len(face)), np.nan, dtype=np.float32)
     hit = face >= 0

@@ -203,7 +203,7 @@ def test_frontal_normals_are_the_first_hit_normals_of_the_merged_hits():
     split = frontal_normals(tracer.frontal_query(origins, directions), tracer, camera)
     merged = first_hit_normals(tracer.frontal_hits(origins, directions), tracer, camera)
     assert np.isfinite(split).all() and split.dtype == np.float32
-    np.testing.assert_allclose(split, merged, rtol=0, atol=1e-7)  # float32 rounding of the same normal
+    np.testing.assert_array_equal(split, merged)
 
 
 def test_keep_drops_hits_before_the_rules(furnished):

@@ -467,28 +467,31 @@ class HouseTracer:
                               (default: the house's envelope); the overhead view passes floors
         envelope_near       : envelope hits nearer than this are ignored (metres along the ray)
         """
-        rays = Rays.check(origins, directions)
-        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
-        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
-        closing = self._closing(rays, envelope, envelope_near)
-        cutoff = closing.t + tol.envelope_slack
-        cutoff[np.isnan(cutoff)] = np.inf
-        ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
+        rays, closing, ray, face, cutoff = self._frontal_crossings(origins, directions, objects, envelope,
+                                                                   envelope_near)
         return FrontalHits(_collect_hits(self.triangles, rays, ray, face, cutoff), closing)
 
     def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0) -> Hits:
         """The hits of :meth:`frontal_query` as one :class:`Hits` (closing hits sorted in
         among the object hits): the subset of :meth:`all_hits` the layer rules use.
         Arguments as for :meth:`frontal_query`."""
+        rays, closing, ray, face, cutoff = self._frontal_crossings(origins, directions, objects, envelope,
+                                                                   envelope_near)
+        walled = np.flatnonzero(closing.face >= 0)
+        return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, closing.face[walled]], cutoff)
+
+    def _frontal_crossings(self, origins, directions, objects, envelope, envelope_near: float):
+        """What both frontal queries start from: the checked rays, their closing hits, the
+        engine's object crossings that may lie before the cut-off, and the cut-off (n,)
+        (closing distance + slack; inf where nothing closes the ray)."""
         rays = Rays.check(origins, directions)
         objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
         envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
         closing = self._closing(rays, envelope, envelope_near)
-        walled = np.flatnonzero(closing.face >= 0)
         cutoff = closing.t + tol.envelope_slack
         cutoff[np.isnan(cutoff)] = np.inf
         ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
-        return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, closing.face[walled]], cutoff)
+        return rays, closing, ray, face, cutoff
 
     def _closing(self, rays: Rays, envelope: np.ndarray, envelope_near: float) -> FirstHit:
         """Each ray's first hit among the ``envelope`` instances at least ``envelope_near``
