@@ -187,7 +187,7 @@ def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_catego
     category[2] = np.append(inst_category, 0)[closing_inst]
 
     # D1 and rule 2: the first object hit of a ray is visible by definition
-    first = np.flatnonzero(np.r_[True, ray[1:] != ray[:-1]]) if len(ray) else np.zeros(0, np.int64)
+    first = _first_per_ray(np.arange(len(ray)), ray)
     r1 = fill(0, first)
     inst1 = np.full(n, -1, dtype=np.int64)
     inst1[r1] = inst[first]

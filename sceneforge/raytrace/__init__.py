@@ -307,10 +307,11 @@ def _normal_dot(triangles: HouseTriangles, face: np.ndarray, ray: np.ndarray, ra
                     per_face = triangles.offset - per_face
                 rays.cache[what] = per_face
             return per_face[face]
-        dot = n[0][face] * x + n[1][face] * y + n[2][face] * z
+    elif ray is None:
+        x, y, z = xyz
     else:
-        x, y, z = xyz if ray is None else (xyz[0][ray], xyz[1][ray], xyz[2][ray])
-        dot = n[0][face] * x + n[1][face] * y + n[2][face] * z
+        x, y, z = xyz[0][ray], xyz[1][ray], xyz[2][ray]
+    dot = n[0][face] * x + n[1][face] * y + n[2][face] * z
     return triangles.offset[face] - dot if what == "origin" else dot
 
 
