@@ -122,7 +122,7 @@ def test_store_conventions_are_generated_from_conventions_py(store_path, monkeyp
     # and the schema holds a store's record to the conventions
     doc = describe(zarr.open_group(str(store_path), mode="r"))
     doc["attributes"]["conventions"]["camera_axes"]["y"] = "up"
-    assert [e.split(":")[0] for e in schemas.errors(doc, "store")] == ["attributes/conventions/camera_axes/y"]
+    assert [e.split(":")[0] for e in schemas.errors(doc, "store")] == ["attributes/conventions/camera_axes"]
 
 
 def test_reading_a_view_back_equals_what_was_computed(store_path):
