@@ -20,12 +20,13 @@ one against the schema and for internal consistency.
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
+from . import conventions
 from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
 from .errors import MissingDependencyError, SceneforgeError
 
@@ -126,18 +127,9 @@ def sizes_of(config: "DatasetConfig", n_views: int) -> dict[str, int]:
 
 
 def conventions_attrs() -> dict:
-    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes."""
-    return {
-        "units": "metres",
-        "up": "+Y",
-        "camera_axes": "OpenCV: x right, y down, z forward; poses are cam_to_world",
-        "pixel_centres": "integer + 0.5; K in pixels",
-        "depth": "planar z-depth along the camera's forward axis, float32 metres; NaN = no surface",
-        "layers": list(LAYER_NAMES),
-        "category_layers": [LAYER_NAMES[0], LAYER_NAMES[2], LAYER_NAMES[4]],
-        "instance_layers": [LAYER_NAMES[0], LAYER_NAMES[2]],
-        "tolerances": asdict(tol),
-    }
+    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes:
+    :func:`sceneforge.conventions.record`, built from the constants that define them."""
+    return conventions.record()
 
 
 def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dict:
@@ -526,7 +518,7 @@ def _rigid_problems(T: np.ndarray) -> np.ndarray:
     R = T[:, :3, :3]
     bad = ~np.isfinite(T).all(axis=(1, 2))
     with np.errstate(invalid="ignore"):
-        bad |= ~np.isclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=1e-5).all(axis=(1, 2))
+        bad |= ~np.isclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=tol.rotation).all(axis=(1, 2))
         bad |= np.linalg.det(np.where(np.isfinite(R), R, 0)) < 0
     bad |= ~(T[:, 3] == [0, 0, 0, 1]).all(axis=1)
     return bad
@@ -577,10 +569,10 @@ def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
         report("D3 is set where D1 is not", _per_view(f[:, 2] & ~f[:, 0]), start)
         with np.errstate(invalid="ignore"):
             report("negative depth", _per_view(d < 0), start)
-            report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - 1e-5), start)
-            report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - 1e-5), start)
-            report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - 1e-5), start)
-            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + 1e-5), start)
+            report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - tol.stored_depth), start)
+            report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - tol.stored_depth), start)
+            report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - tol.stored_depth), start)
+            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + tol.stored_depth), start)
         report("a class outside 0..40", _per_view(cat >= n_classes) | _per_view(a["overhead_category"] >= n_classes),
                start)
         for k, layer in ((0, 0), (1, 2), (2, 4)):

@@ -162,7 +162,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     source = open_store(store)
     eft = None
     if config.stage == "overhead":
-        eft = EpipolarFeatureTransformer(replace(config.eft, resolution=index.shapes["Wo"]))
+        eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
     dataset = StoreDataset(index, ("rgb", "camera"))
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
 

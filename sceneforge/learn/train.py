@@ -99,7 +99,7 @@ class TrainConfig:
     log_every: int = 10
     #: save the checkpoint every this many steps (and at the end of every epoch)
     checkpoint_every: int = 500
-    #: the epipolar feature transform (its resolution is set from the stores)
+    #: the epipolar feature transform (its resolution is the stores' overhead resolution)
     eft: EFTConfig = field(default_factory=EFTConfig)
     #: loss weights
     loss: LossConfig = field(default_factory=LossConfig)
@@ -226,7 +226,7 @@ def overhead_input(frontal: dict[str, nn.Module], eft: EpipolarFeatureTransforme
     rgb = batch["rgb"]
     depth, seg = frontal["depth"](rgb), frontal["seg"](rgb)
     layers = batch["depth"] if true_layers else masked_layers(depth.prediction, seg.prediction)
-    geom = geometry(batch, tuple(rgb.shape[-2:]), eft.config.resolution)
+    geom = geometry(batch, tuple(rgb.shape[-2:]), eft.resolution)
     return eft(rgb, depth.features, seg.features, layers[:, :4], geom), layers, seg.prediction
 
 
@@ -387,8 +387,7 @@ def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
     if not has_checkpoint:
         raise SceneforgeError(f"{run}: nothing to resume (no {CHECKPOINT})")
     saved = read_config(run)
-    ours = replace(config, epochs=saved.epochs, max_steps=saved.max_steps,
-                   eft=replace(config.eft, resolution=saved.eft.resolution))
+    ours = replace(config, epochs=saved.epochs, max_steps=saved.max_steps)
     if ours != saved:
         diff = [k for k, v in saved.to_dict().items() if ours.to_dict()[k] != v]
         raise SceneforgeError(f"{run}: --resume with a different config ({', '.join(diff)}); start a new run")
@@ -453,8 +452,6 @@ def train(
     dev = resolve_device(device)
     frontal = frontal_nets(config, dev) if config.stage in ("overhead", "camera") else {}
     index, subsets, split_record = _split(config)
-    # the overhead nets are supervised at the stores' overhead resolution
-    config = replace(config, eft=replace(config.eft, resolution=index.shapes["Wo"]))
     run.mkdir(parents=True, exist_ok=True)
     (run / "split.json").write_text(json.dumps(split_record, indent=2) + "\n")
     (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
@@ -463,7 +460,8 @@ def train(
     nets = build_nets(config, frontal)
     for net in nets.values():
         net.to(dev).train()
-    eft = EpipolarFeatureTransformer(config.eft) if config.stage == "overhead" else None
+    # the overhead nets are supervised at the stores' overhead resolution
+    eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"]) if config.stage == "overhead" else None
     params = [p for net in nets.values() for p in net.parameters()]
     optimizer = torch.optim.Adam(params, lr=config.lr)
 
