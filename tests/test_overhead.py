@@ -12,7 +12,7 @@ from sceneforge.cli.main import cli
 
 from sceneforge.cameras import look_at_camera
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.overhead import (
     Box,

@@ -62,7 +62,7 @@ def _suncg_root_of(path: Path) -> Path | None:
 
 
 def _json_kind(path: Path) -> str | None:
-    from .native import is_native
+    from .formats.native import is_native
 
     if is_native(path):
         return "sceneforge"
@@ -149,7 +149,7 @@ def _discover(path: Path, fmt: str | None) -> list[HouseSource]:
     if fmt in (None, "front3d") and (path / "3D-FRONT").is_dir():
         return _discover(path / "3D-FRONT", "front3d")
     if fmt in (None, "sceneforge") and (path / "house.json").is_file():
-        from .native import is_native
+        from .formats.native import is_native
 
         if is_native(path):
             return [_source(path, "sceneforge")]
@@ -178,19 +178,19 @@ def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -
         source = found[0]
     try:
         if source.format == "sceneforge":
-            from .native import load_house
+            from .formats.native import load_house
 
             return load_house(source.path, strict=options.strict)
         if source.format in ("gltf", "obj", "ply"):
-            from .generic import load_house
+            from .formats.generic import load_house
 
             return load_house(source.path, options)
         if source.format == "suncg":
-            from .suncg import load_house
+            from .formats.suncg import load_house
 
             return load_house(source.path, options)
         if source.format == "front3d":
-            from .front3d import load_house
+            from .formats.front3d import load_house
 
             return load_house(source.path, options)
     except SceneforgeError:

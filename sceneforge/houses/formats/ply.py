@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model import House, Material
 from .meshio import Mesh, MeshFileError, Warn, compact, fan, find_image, ignore
-from .model import House, Material
 
 __all__ = ["read_ply", "write_ply"]
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .model import Material
+from ..model import Material
 
 #: Receives each problem a reader tolerated (a missing texture, a dropped material, ...).
 Warn = Callable[[str], None]

@@ -14,7 +14,7 @@ rest (normals, lines, smoothing groups):
   (options before the image name are skipped; a missing image may be replaced by its
   ``.png``/``.jpg`` twin). A mesh has one material: of those its faces name with
   ``usemtl``, the one covering the most area.
-- Malformed content raises :class:`~sceneforge.houses.meshio.MeshFileError` with the line.
+- Malformed content raises :class:`~sceneforge.houses.formats.meshio.MeshFileError` with the line.
 
 trimesh is not used: it splits meshes per material, packs textures into one atlas and
 merges vertices, which reorders vertices and rewrites uv. Lines are parsed in bulk by
@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model import Material
 from .meshio import (
     Mesh,
     MeshFileError,
@@ -44,7 +45,6 @@ from .meshio import (
     save_texture,
     texture_suffix,
 )
-from .model import Material
 
 __all__ = ["read_mtl", "read_obj", "read_objects", "write_obj"]
 

@@ -26,6 +26,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
+from ..model import House, Material
 from .meshio import (
     Mesh,
     MeshFileError,
@@ -40,7 +41,6 @@ from .meshio import (
     quaternion_matrix,
     texture_suffix,
 )
-from .model import House, Material
 
 __all__ = ["read_gltf", "write_gltf"]
 

@@ -42,15 +42,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import NYU40_NAMES, is_dropped, nyu40_id
-from ..errors import HouseError, SceneforgeError
-from .categories import data_file, resolve
+from ...conventions import NYU40_NAMES, is_dropped, nyu40_id
+from ...errors import HouseError, SceneforgeError
+from ..categories import data_file, resolve
+from ..model import House, Instance, Material, Room, make_instance
 from .meshio import Mesh, place, quaternion_matrix, save_texture
-from .model import House, Instance, Material, Room, make_instance
-from .wavefront import read_obj, write_obj
+from .obj import read_obj, write_obj
 
 if TYPE_CHECKING:
-    from . import LoadOptions
+    from .. import LoadOptions
 
 SCENE_DIR = "3D-FRONT"
 MODEL_DIR = "3D-FUTURE-model"

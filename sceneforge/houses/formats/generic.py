@@ -1,9 +1,9 @@
 """Generic scenes: glTF 2.0 (``.gltf``/``.glb``), Wavefront OBJ and PLY, read and written.
 
 A generic scene has no rooms and no categories, only named meshes. Each format module
-turns its file into meshes (:mod:`~sceneforge.houses.gltf`: one per node,
-:mod:`~sceneforge.houses.wavefront`: one per ``o`` object or ``g`` group,
-:mod:`~sceneforge.houses.ply`: one per ``instance`` property value) and writes a house;
+turns its file into meshes (:mod:`~sceneforge.houses.formats.gltf`: one per node,
+:mod:`~sceneforge.houses.formats.obj`: one per ``o`` object or ``g`` group,
+:mod:`~sceneforge.houses.formats.ply`: one per ``instance`` property value) and writes a house;
 this module makes instances of the meshes and names them:
 
 - The category of an instance comes from its name through a :class:`PatternMap` (the
@@ -25,15 +25,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import NYU40_NAMES, is_dropped
-from ..errors import HouseError, SceneforgeError
-from . import MESH_SUFFIXES as SUFFIXES
-from .categories import PatternMap, resolve
+from ...conventions import NYU40_NAMES, is_dropped
+from ...errors import HouseError, SceneforgeError
+from .. import MESH_SUFFIXES as SUFFIXES
+from ..categories import PatternMap, resolve
+from ..model import House, Instance, make_instance
 from .meshio import Mesh, MeshFileError
-from .model import House, Instance, make_instance
 
 if TYPE_CHECKING:
-    from . import LoadOptions
+    from .. import LoadOptions
 
 __all__ = ["SUFFIXES", "load_house", "tagged_name", "write_house"]
 
@@ -53,10 +53,10 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
     file and the problem for anything unreadable, and :class:`SceneforgeError` for a bad
     option.
     """
-    from . import LoadOptions
+    from .. import LoadOptions
     from .gltf import read_gltf
+    from .obj import read_objects
     from .ply import read_ply
-    from .wavefront import read_objects
 
     path = Path(path)
     options = options or LoadOptions()
@@ -89,8 +89,8 @@ def write_house(house: House, path: str | Path) -> Path:
     (about 6e-8 × the instance's size of error). Returns ``path``.
     """
     from .gltf import write_gltf
+    from .obj import write_obj
     from .ply import write_ply
-    from .wavefront import write_obj
 
     path = Path(path)
     suffix = path.suffix.lower()

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import NYU40_NAMES, nyu40_id
-from ..errors import HouseError
-from .model import House, Level, Material, Room, make_instance
+from ...conventions import NYU40_NAMES, nyu40_id
+from ...errors import HouseError
+from ..model import House, Level, Material, Room, make_instance
 
 FORMAT_TAG = "sceneforge-house"
 SCHEMA_VERSION = 1

@@ -30,7 +30,7 @@ the ``fine_grained_class`` (so the fireplace/person/plant rules of
 :mod:`sceneforge.conventions` apply); persons and plants are dropped. A room's id is its
 ``modelId`` (``fr_0rm_3``, unique in a house), its type the ``roomTypes`` joined by commas,
 its level the level listing it. A level's floor height is the bottom of its ``bbox``.
-OBJ files are read and written by :mod:`sceneforge.houses.wavefront`.
+OBJ files are read and written by :mod:`sceneforge.houses.formats.obj`.
 """
 
 from __future__ import annotations
@@ -44,15 +44,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import NYU40_IDS, NYU40_NAMES, is_dropped, nyu40_id
-from ..errors import HouseError
-from .categories import resolve
+from ...conventions import NYU40_IDS, NYU40_NAMES, is_dropped, nyu40_id
+from ...errors import HouseError
+from ..categories import resolve
+from ..model import House, Instance, Level, Material, Room, make_instance
 from .meshio import Mesh, place
-from .model import House, Instance, Level, Material, Room, make_instance
-from .wavefront import read_obj, write_obj
+from .obj import read_obj, write_obj
 
 if TYPE_CHECKING:
-    from . import LoadOptions
+    from .. import LoadOptions
 
 VERSION = "suncg@1.0.0"
 CATEGORY_CSV = Path("metadata") / "ModelCategoryMapping.csv"
