@@ -54,16 +54,16 @@ def write(house: House, fmt: str, root):
 
         return write_house(house, root / house.id)
     if fmt == "suncg":
-        from sceneforge.houses.formats.suncg import write_house
+        from sceneforge.testing.suncg import write_house
 
         write_house(house, root)
         return root
     if fmt == "front3d":
-        from sceneforge.houses.formats.front3d import write_house
+        from sceneforge.testing.front3d import write_house
 
         write_house(house, root)
         return root
-    from sceneforge.houses.formats.generic import write_house
+    from sceneforge.testing.generic import write_house
 
     return write_house(house, root / f"{house.id}.{fmt}")
 

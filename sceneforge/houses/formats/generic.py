@@ -1,9 +1,9 @@
-"""Generic scenes: glTF 2.0 (``.gltf``/``.glb``), Wavefront OBJ and PLY, read and written.
+"""Generic scenes: glTF 2.0 (``.gltf``/``.glb``), Wavefront OBJ and PLY, read as houses.
 
 A generic scene has no rooms and no categories, only named meshes. Each format module
 turns its file into meshes (:mod:`~sceneforge.houses.formats.gltf`: one per node,
 :mod:`~sceneforge.houses.formats.obj`: one per ``o`` object or ``g`` group,
-:mod:`~sceneforge.houses.formats.ply`: one per ``instance`` property value) and writes a house;
+:mod:`~sceneforge.houses.formats.ply`: one per ``instance`` property value);
 this module makes instances of the meshes and names them:
 
 - The category of an instance comes from its name through a :class:`PatternMap` (the
@@ -11,7 +11,7 @@ this module makes instances of the meshes and names them:
   Blender-style copy numbers (``Chair.001`` → ``Chair``), so that rules on source labels
   (fireplace, plant, ...) see the object's kind. Persons and plants are dropped.
 - ``LoadOptions.scale`` and ``up_axis`` take the source's units and axes to metres, +Y up.
-- The writers name every instance ``<nyu40 name>__<name>``, or
+- The writers (:mod:`sceneforge.testing.generic`) name every instance ``<nyu40 name>__<name>``, or
   ``<nyu40 name>__<label>__<name>`` when the label is not the one the name gives (or the
   name holds ``__``): the bundled pattern map sends the tag back to the same class, and the
   loader takes tag and label off the name.
@@ -35,7 +35,7 @@ from .meshio import Mesh, MeshFileError
 if TYPE_CHECKING:
     from .. import LoadOptions
 
-__all__ = ["SUFFIXES", "load_house", "tagged_name", "write_house"]
+__all__ = ["SUFFIXES", "load_house", "tagged_name"]
 
 #: rotation taking a Z-up source to +Y up, right-handed: (x, y, z) → (x, z, -y)
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -79,37 +79,6 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
     return builder.house.check_not_empty()
 
 
-def write_house(house: House, path: str | Path) -> Path:
-    """Write ``house`` as ``.gltf``, ``.glb``, ``.obj`` (+ ``.mtl``) or ``.ply`` (by suffix).
-
-    Every format keeps instances (one node / ``o`` object / PLY ``instance`` value each),
-    categories (through :func:`tagged_name`) and geometry. glTF and OBJ keep base colours,
-    textures and uv; PLY keeps base colours (as face colours) and uv, not textures. Rooms
-    are not kept. glTF stores positions as float32, relative to each instance's centre
-    (about 6e-8 × the instance's size of error). Returns ``path``.
-    """
-    from .gltf import write_gltf
-    from .obj import write_obj
-    from .ply import write_ply
-
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
-        raise SceneforgeError(
-            f"{path}: cannot write a house as {suffix!r} (use one of {', '.join(SUFFIXES)})")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    names = _unique_tagged_names(house.instances)
-    if suffix in (".gltf", ".glb"):
-        write_gltf(path, house, names)
-    elif suffix == ".obj":
-        write_obj(path, [Mesh(i.vertices, i.faces, i.uv, i.material, name)
-                         for i, name in zip(house.instances, names, strict=True)],
-                  comment=f"sceneforge house {house.id}: objects are named <nyu40 class>__<name>")
-    else:
-        write_ply(path, house, names)
-    return path
-
-
 def tagged_name(instance: Instance) -> str:
     """The name the writers give ``instance``: ``<nyu40 name>__[<label>__]<name>`` (module docs)."""
     name = re.sub(r"\s+", " ", instance.name).strip() or f"instance{instance.id}"
@@ -135,17 +104,6 @@ def _split_name(node_name: str) -> tuple[str, str]:
         return name, label
     rest = node_name[tag.end():]
     return rest, _label_of(rest)
-
-
-def _unique_tagged_names(instances: list[Instance]) -> list[str]:
-    """Tagged names, made unique with ``.2``, ``.3``... (OBJ would merge equal names)."""
-    seen: dict[str, int] = {}
-    out = []
-    for inst in instances:
-        name = tagged_name(inst)
-        seen[name] = seen.get(name, 0) + 1
-        out.append(name if seen[name] == 1 else f"{name}.{seen[name]}")
-    return out
 
 
 class _Builder:
