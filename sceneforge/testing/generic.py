@@ -7,14 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import SceneforgeError
-from ..houses.formats.generic import tagged_name
+from ..houses.formats.generic import SUFFIXES, tagged_name
 from ..houses.formats.meshio import Mesh
 from ..houses.model import House, Instance
 from .gltf import write_gltf
 from .obj import write_obj
 from .ply import write_ply
-
-SUFFIXES = (".gltf", ".glb", ".obj", ".ply")
 
 
 def write_house(house: House, path: str | Path) -> Path:

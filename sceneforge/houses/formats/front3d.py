@@ -45,6 +45,7 @@ from ...conventions import is_dropped, nyu40_id
 from ...errors import HouseError, SceneforgeError
 from ..categories import data_file, resolve
 from ..model import House, Material, Room, make_instance
+from .base import Format, HouseSource, json_document
 from .meshio import Mesh, place, quaternion_matrix
 from .obj import read_obj
 
@@ -56,6 +57,24 @@ MODEL_DIR = "3D-FUTURE-model"
 TEXTURE_DIR = "3D-FRONT-texture"
 MODEL_INFO = "model_info.json"
 CATEGORY_FILE = "front3d_categories.json"
+
+
+def detect(path: Path) -> bool:
+    """True for a 3D-FRONT root (a folder holding ``3D-FRONT/``) or a scene JSON (``furniture``
+    and ``scene``)."""
+    if path.is_dir():
+        return (path / SCENE_DIR).is_dir()
+    doc = json_document(path)
+    return isinstance(doc, dict) and "furniture" in doc and "scene" in doc
+
+
+def list_houses(path: Path) -> list[HouseSource]:
+    """Every scene of a root's ``3D-FRONT/`` folder, or the one scene of a scene JSON."""
+    if path.is_dir():
+        from . import find  # the registry, which imports this module
+
+        return find(path / SCENE_DIR, FORMAT)
+    return [HouseSource(path.stem, FORMAT.name, path)]
 
 
 def _key(name: str) -> str:
@@ -268,3 +287,14 @@ def load_house(path: Path, options: LoadOptions) -> House:
     if invalid:
         r.house.warnings.append(f"{invalid} placed furniture pieces are marked invalid (unreleased), skipped")
     return r.house.check_not_empty()
+
+
+def _load(source: HouseSource, options: LoadOptions) -> House:
+    return load_house(source.path, options)
+
+
+FORMAT = Format(
+    "front3d", detect=detect, list=list_houses, load=_load,
+    # scene files vary: inside a root, or when 3D-FRONT is asked for, any other JSON is one
+    fallback=lambda path: path.suffix.lower() == ".json",
+)

@@ -11,6 +11,8 @@ this module makes instances of the meshes and names them:
   Blender-style copy numbers (``Chair.001`` → ``Chair``), so that rules on source labels
   (fireplace, plant, ...) see the object's kind. Persons and plants are dropped.
 - ``LoadOptions.scale`` and ``up_axis`` take the source's units and axes to metres, +Y up.
+- The three formats (:data:`GLTF`, :data:`OBJ`, :data:`PLY`, as the registry holds them) are
+  recognised by their file suffixes (:data:`SUFFIXES`) and all read by :func:`load_house`.
 - The writers (:mod:`sceneforge.testing.generic`) name every instance ``<nyu40 name>__<name>``, or
   ``<nyu40 name>__<label>__<name>`` when the label is not the one the name gives (or the
   name holds ``__``): the bundled pattern map sends the tag back to the same class, and the
@@ -27,15 +29,18 @@ import numpy as np
 
 from ...conventions import NYU40_NAMES, is_dropped
 from ...errors import HouseError, SceneforgeError
-from .. import MESH_SUFFIXES as SUFFIXES
 from ..categories import PatternMap, resolve
 from ..model import House, Instance, make_instance
+from .base import Format, HouseSource
 from .meshio import Mesh, MeshFileError
 
 if TYPE_CHECKING:
     from .. import LoadOptions
 
-__all__ = ["SUFFIXES", "load_house", "tagged_name"]
+__all__ = ["GLTF", "OBJ", "PLY", "SUFFIXES", "load_house", "tagged_name"]
+
+#: file suffix → the generic format it is
+SUFFIXES = {".gltf": "gltf", ".glb": "gltf", ".obj": "obj", ".ply": "ply"}
 
 #: rotation taking a Z-up source to +Y up, right-handed: (x, y, z) → (x, z, -y)
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -140,3 +145,20 @@ class _Builder:
         v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) @ self.to_world.T
         make_instance(self.house, name=clean, category=category, label=label, room_id=None,
                       vertices=v, faces=mesh.faces, file=self.path, material=mesh.material, uv=mesh.uv)
+
+
+def _load(source: HouseSource, options: LoadOptions) -> House:
+    return load_house(source.path, options)
+
+
+def _generic_format(name: str) -> Format:
+    """The generic format ``name``: files with one of its suffixes, read by :func:`load_house`."""
+    suffixes = tuple(s for s, fmt in SUFFIXES.items() if fmt == name)
+
+    def detect(path: Path) -> bool:
+        return path.suffix.lower() in suffixes and not path.is_dir()
+
+    return Format(name, detect=detect, load=_load)
+
+
+GLTF, OBJ, PLY = _generic_format("gltf"), _generic_format("obj"), _generic_format("ply")

@@ -48,6 +48,7 @@ from ...conventions import NYU40_IDS, is_dropped, nyu40_id
 from ...errors import HouseError
 from ..categories import resolve
 from ..model import House, Instance, Level, Material, Room, make_instance
+from .base import Format, HouseSource, json_document
 from .meshio import Mesh, place
 from .obj import read_obj
 
@@ -64,9 +65,34 @@ CSV_FIELDS = (
 ROOM_PARTS = (("f", "floor", "hideFloor"), ("c", "ceiling", "hideCeiling"), ("w", "wall", "hideWalls"))
 
 
-# --------------------------------------------------------------------------------------
-# Loader
-# --------------------------------------------------------------------------------------
+def root_of(path: Path) -> Path | None:
+    """The SUNCG root of ``path`` (root, ``house/<id>/`` or its ``house.json``), if it is one."""
+    for cand in (path, *path.parents[:3]):
+        if (cand / "house").is_dir() and (cand / "object").is_dir():
+            return cand
+    return None
+
+
+def detect(path: Path) -> bool:
+    """True for a SUNCG root (``house/`` and ``object/`` folders), a house folder inside one,
+    or a SUNCG ``house.json`` (``levels``, and ``version`` or ``up``)."""
+    if path.is_dir():
+        root = root_of(path)
+        return root is not None and (root == path or (path / "house.json").is_file())
+    doc = json_document(path)
+    return isinstance(doc, dict) and "levels" in doc and ("version" in doc or "up" in doc)
+
+
+def list_houses(path: Path) -> list[HouseSource]:
+    """Every house of a SUNCG root (by id), or the one house of a house folder or ``house.json``."""
+    if path.is_dir() and root_of(path) == path:
+        return [
+            HouseSource(d.name, FORMAT.name, d / "house.json")
+            for d in sorted((path / "house").iterdir())
+            if (d / "house.json").is_file()
+        ]
+    house_dir = path.parent if path.is_file() else path
+    return [HouseSource(house_dir.name, FORMAT.name, house_dir / "house.json")]
 
 
 def _flag(value) -> bool:
@@ -301,3 +327,10 @@ def _floor_y(level: dict, instances: list[Instance], scale: float) -> float:
         pass
     floors = [i for i in instances if i.category == NYU40_IDS["floor"]] or instances
     return float(min(i.vertices[:, 1].min() for i in floors)) if floors else 0.0
+
+
+def _load(source: HouseSource, options: LoadOptions) -> House:
+    return load_house(source.path, options)
+
+
+FORMAT = Format("suncg", detect=detect, list=list_houses, load=_load)
