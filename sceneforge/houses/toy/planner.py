@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import NYU40_IDS
-from ..errors import SceneforgeError
-from . import bundled_toy_dir
-from .model import House, Level, Material, Room, make_instance
+from ...conventions import NYU40_IDS
+from ...errors import SceneforgeError
+from .. import bundled_toy_dir
+from ..model import House, Level, Material, Room, make_instance
 
 __all__ = [
     "BUNDLE_COUNT", "BUNDLE_SEED", "Opening", "ToyHouse", "build_toy_house",
@@ -1053,7 +1053,7 @@ def write_toy_houses(out: str | Path, count: int, seed: int, progress=None) -> l
     House ``i`` has id ``toy_<seed>_<i:03d>`` and seed :func:`house_seed` ``(seed, i)``.
     ``progress(house, folder)`` is called after each house is written.
     """
-    from .formats.native import write_house
+    from ..formats.native import write_house
 
     seed = _check_seed(seed)
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
