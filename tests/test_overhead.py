@@ -14,7 +14,7 @@ from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_camer
 from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, discover, load
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.overhead import (
     Box,

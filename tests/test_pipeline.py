@@ -19,7 +19,7 @@ from sceneforge.cli.main import cli
 from sceneforge.cameras import look_at_camera, write_pbrs_cameras
 from sceneforge.config import load_config
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 from sceneforge.pipeline import render_dataset
 from sceneforge.store import open_store, validate_store
 
