@@ -37,7 +37,7 @@ def errors(doc, name: str) -> list[str]:
 
 def unknown_keys(doc, name: str) -> list[tuple[str, list[str]]]:
     """The keys of ``doc`` that schema ``name`` does not know, as (dotted key, the keys
-    allowed beside it) pairs, in document order."""
+    allowed beside it) pairs, sorted by key."""
     import jsonschema
 
     found = []
@@ -47,7 +47,7 @@ def unknown_keys(doc, name: str) -> list[tuple[str, list[str]]]:
         known = list(e.schema.get("properties", {}))
         where = [str(p) for p in e.absolute_path]
         found += [(".".join([*where, key]), known) for key in e.instance if key not in known]
-    return found
+    return sorted(found)
 
 
 def validate_or_raise(doc, name: str, *, what: str) -> None:
@@ -55,12 +55,14 @@ def validate_or_raise(doc, name: str, *, what: str) -> None:
     an unknown key is named first, with the nearest known key when one is close."""
     unknown = unknown_keys(doc, name)
     if unknown:
-        key, known = unknown[0]
-        near = difflib.get_close_matches(key.rsplit(".", 1)[-1], known, n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else ""
-        more = f" (and {len(unknown) - 1} more)" if len(unknown) > 1 else ""
-        raise SceneforgeError(f"{what}: unknown key {key!r}{more}: Additional properties are not allowed by "
-                              f"the {name} schema{hint}")
+        keys = ", ".join(repr(key) for key, _ in unknown)
+        hint = ""
+        if len(unknown) == 1:
+            key, known = unknown[0]
+            near = difflib.get_close_matches(key.rsplit(".", 1)[-1], known, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+        raise SceneforgeError(f"{what}: unknown key{'s' if len(unknown) > 1 else ''} {keys}: Additional properties "
+                              f"are not allowed by the {name} schema{hint}")
     problems = errors(doc, name)
     if problems:
         more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
