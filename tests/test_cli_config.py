@@ -158,3 +158,19 @@ def test_help_imports_no_torch():
             "print(sorted(m for m in ('torch', 'zarr') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_overhead_explanation_is_one_library_call(small_house, tmp_path):
+    from sceneforge.houses.native import write_house
+    from sceneforge.overhead import OverheadConfig, explain_overhead_cameras
+
+    write_house(small_house, tmp_path / "small")
+    cameras = tmp_path / "cameras.txt"
+    cameras.write_text("0 1.5 1.6  0 -0.2 -1  0 1 0  0.5534 0.4339 0\n")
+    explained = explain_overhead_cameras(tmp_path / "small", cameras, config=OverheadConfig(resolution=32))
+    (view,) = explained.views
+    assert view.index == 0 and explained.sampled is None and len(explained.cameras) == 1
+    assert [c.name for c in view.overhead.candidates] == ["depth_statistics", "envelope_frustum", "majority_room"]
+    assert view.overhead.resolution == 32 and len(view.points.objects) > 0
+    with pytest.raises(SceneforgeError, match="view 3: small has 1 views"):
+        explain_overhead_cameras(tmp_path / "small", cameras, view_index=3)
