@@ -308,7 +308,7 @@ REJECT_REASONS = ("not_above_floor", "too_close", "escapes", "few_objects")
 
 @dataclass(frozen=True)
 class CameraSamplerConfig:
-    """How :func:`sample_cameras` places cameras. Field docs double as CLI help."""
+    """How :func:`sample_cameras` places cameras. Field docs become the config schema's descriptions."""
 
     #: camera height above the floor under it, metres
     eye_height: float = 1.5

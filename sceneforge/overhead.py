@@ -38,10 +38,12 @@ from .errors import MissingDependencyError, SceneforgeError
 from .layers import Layers, instance_labels, layers_from_frontal
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     import matplotlib.figure
 
-    from .cameras import Camera
-    from .houses import House
+    from .cameras import Camera, CameraSamplerConfig, SamplerReport
+    from .houses import House, LoadOptions
 
 CANDIDATE_NAMES: tuple[str, ...] = ("depth_statistics", "envelope_frustum", "majority_room")
 FLOOR = NYU40_IDS["floor"]
@@ -690,6 +692,80 @@ def overhead_truth(
     first = np.isfinite(layers.depth[0])
     category = np.where(first, layers.category[0], layers.envelope_category).astype(np.uint8)
     return OverheadTruth(layers, height, category, camera.floor_y)
+
+
+# ------------------------------------------------------------------------- explain
+
+
+@dataclass(frozen=True, eq=False)
+class ViewExplanation:
+    """How the overhead camera of one frontal view was chosen.
+
+    index    : the view's index among the house's cameras
+    camera   : the frontal camera
+    overhead : the chosen overhead camera, with its three candidate boxes
+    points   : the frontal points the boxes were built from (what :func:`plot_candidates` draws)
+    """
+
+    index: int
+    camera: "Camera"
+    overhead: OverheadCamera
+    points: FrontalPoints
+
+
+@dataclass(frozen=True, eq=False)
+class OverheadExplanation:
+    """The overhead cameras of a house's views, and how its cameras were found.
+
+    views   : one explanation per view asked for
+    cameras : every camera of the house (read or sampled)
+    sampled : the sampler's report (None when the cameras were read from a file); it may
+              have found fewer cameras than it was asked for
+    """
+
+    views: list[ViewExplanation]
+    cameras: list["Camera"]
+    sampled: "SamplerReport | None" = None
+
+
+def explain_overhead_cameras(
+    house: "str | Path",
+    cameras: "str | Path | int",
+    *,
+    options: "LoadOptions | None" = None,
+    sampler: "CameraSamplerConfig | None" = None,
+    seed: int = 0,
+    config: OverheadConfig | None = None,
+    view_index: int | None = None,
+) -> OverheadExplanation:
+    """Load ``house``, get its cameras (the PBRS camera file ``cameras``, or that many
+    cameras sampled from ``np.random.default_rng(seed)``), trace each view's frontal layers
+    and place its overhead camera; only view ``view_index`` when given.
+
+    Raises :class:`SceneforgeError` for a house or camera file that cannot be read, a view
+    index beyond the cameras, or a view the overhead camera cannot be placed for.
+    """
+    from .cameras import CameraSamplerConfig, read_pbrs_cameras, sample_cameras
+    from .houses import load
+    from .layers import frontal_layers
+    from .raytrace import HouseTracer
+
+    config, sampler = config or OverheadConfig(), sampler or CameraSamplerConfig()
+    h = load(house, options)
+    tracer = HouseTracer(h)
+    report = None
+    if isinstance(cameras, int):
+        found, report = sample_cameras(h, cameras, np.random.default_rng(seed), sampler, tracer)
+    else:
+        found = read_pbrs_cameras(cameras, sampler.width, sampler.height)
+    if view_index is not None and not 0 <= view_index < len(found):
+        raise SceneforgeError(f"view {view_index}: {h.id} has {len(found)} views")
+    views = []
+    for i in range(len(found)) if view_index is None else [view_index]:
+        layers = frontal_layers(h, found[i], tracer)
+        overhead, points = overhead_camera_and_points(h, found[i], layers, config)
+        views.append(ViewExplanation(i, found[i], overhead, points))
+    return OverheadExplanation(views, found, report)
 
 
 # ---------------------------------------------------------------------------- plot

@@ -51,7 +51,7 @@ def store_copy(store_path, tmp_path) -> Path:
 
 def test_config_schema_file_is_the_one_generated_from_the_dataclasses():
     path = Path(schemas.__file__).parent / "config.schema.json"
-    assert json.loads(path.read_text()) == config_schema(), "run: python -m sceneforge.config > " + str(path)
+    assert json.loads(path.read_text()) == config_schema(), "run: python -m sceneforge.config (writes " + str(path) + ")"
 
 
 def test_config_round_trips_and_overrides_win(tmp_path):

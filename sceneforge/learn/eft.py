@@ -46,32 +46,13 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from sceneforge.conventions import OBJECT_SEGMENTS, overhead_pixel, overhead_pixel_centre, tol
 
-GATINGS = ("volume", "surface")
-
-
-@dataclass(frozen=True)
-class EFTConfig:
-    """How frontal features are carried to the overhead view."""
-
-    #: "volume" (mean along ray segments, the paper's choice) or "surface" (z-buffer)
-    gating: Literal["volume", "surface"] = "volume"
-    #: samples per overhead pixel along a segment's major axis (1 ≈ a Bresenham line)
-    samples_per_pixel: float = 1.0
-    #: rays are sampled in chunks of at most this many samples (bounds memory)
-    max_samples: int = 1 << 21
-
-    def __post_init__(self):
-        if self.gating not in GATINGS:
-            raise ValueError(f"gating must be one of {GATINGS}, got {self.gating!r}")
-        if not self.samples_per_pixel > 0:
-            raise ValueError(f"samples_per_pixel must be > 0, got {self.samples_per_pixel}")
+from .config import EFTConfig  # defined without torch, for the CLI and the schema
 
 
 @dataclass(frozen=True, eq=False)

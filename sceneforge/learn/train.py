@@ -27,7 +27,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -35,9 +35,10 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import MissingDependencyError, SceneforgeError
-from .dataset import SEG_CLASSES, SPLITS, SplitConfig, StoreDataset, ViewIndex, index_stores, split_houses
-from .eft import EFTConfig, EpipolarFeatureTransformer, EpipolarGeometry, epipolar_geometry
-from .losses import LossConfig, camera_loss, depth_loss, height_loss, segmentation_loss
+from .config import FROZEN, STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
+from .dataset import SEG_CLASSES, SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
+from .eft import EpipolarFeatureTransformer, EpipolarGeometry, epipolar_geometry
+from .losses import camera_loss, depth_loss, height_loss, segmentation_loss
 from .networks import (
     DEPTH_NET,
     OVERHEAD_NET,
@@ -50,93 +51,13 @@ from .networks import (
     masked_layers,
 )
 
-STAGES = ("depth", "seg", "overhead", "camera")
 #: the parts of each stage's loss logged beside it
 LOSS_PARTS = {"depth": (), "seg": (), "overhead": ("height_l1", "seg_ce"), "camera": ()}
 #: sample fields each stage reads (see :data:`sceneforge.learn.dataset.SAMPLE_FIELDS`)
 FIELDS = {"depth": ("rgb", "depth"), "seg": ("rgb", "seg"),
           "overhead": ("rgb", "depth", "camera", "overhead_height", "overhead_seg"),
           "camera": ("rgb", "camera")}
-EFT_LAYERS = ("predicted", "truth")
 CHECKPOINT = "checkpoint.pt"
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that decides what a training run learns (not how fast: the device and
-    the number of data workers are options of :func:`train`)."""
-
-    #: the stage to train: depth, seg, overhead or camera
-    stage: str
-    #: stores to train on; their views are split by house
-    stores: tuple[str, ...]
-    #: views per batch (paper: 24)
-    batch_size: int = 24
-    #: Adam learning rate (paper: 5e-4)
-    lr: float = 5e-4
-    #: passes over the training views (paper: 40)
-    epochs: int = 40
-    #: stop after this many optimiser steps; None = after ``epochs``
-    max_steps: int | None = None
-    #: seed of the weights' initialisation and of the data order
-    seed: int = 0
-    #: multiplies every network width of the paper (tests train nets a few channels wide)
-    width: float = 1.0
-    #: BatchNorm running-statistics momentum of every net (paper: 0.005); a run of a few
-    #: hundred steps needs about 0.1 for its eval-mode statistics to settle
-    bn_momentum: float = 0.005
-    #: the depth run whose frozen net the overhead and camera stages use
-    depth_run: str | None = None
-    #: the segmentation run whose frozen net the overhead stage uses
-    seg_run: str | None = None
-    #: frontal layers the EFT reads in the overhead stage: "predicted" (the frozen nets'
-    #: depths, masked by their segmentation) or "truth" (the store's)
-    eft_layers: str = "predicted"
-    #: overhead height targets are 0 where only the floor is seen (else only object pixels
-    #: are supervised and the net never learns the floor)
-    floor_as_zero: bool = True
-    #: write a train row to the metrics every this many steps
-    log_every: int = 10
-    #: save the checkpoint every this many steps (and at the end of every epoch)
-    checkpoint_every: int = 500
-    #: the epipolar feature transform (its resolution is the stores' overhead resolution)
-    eft: EFTConfig = field(default_factory=EFTConfig)
-    #: loss weights
-    loss: LossConfig = field(default_factory=LossConfig)
-    #: the house split
-    split: SplitConfig = field(default_factory=SplitConfig)
-
-    def __post_init__(self):
-        if self.stage not in STAGES:
-            raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
-        if self.eft_layers not in EFT_LAYERS:
-            raise ValueError(f"eft_layers must be one of {EFT_LAYERS}, got {self.eft_layers!r}")
-        if not self.stores:
-            raise ValueError("at least one store is needed")
-        for name in ("batch_size", "epochs", "log_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
-        if not self.lr > 0 or not self.width > 0:
-            raise ValueError(f"lr and width must be > 0, got {self.lr} and {self.width}")
-        if not 0 < self.bn_momentum <= 1:
-            raise ValueError(f"bn_momentum must be in (0, 1], got {self.bn_momentum}")
-        object.__setattr__(self, "stores", tuple(str(s) for s in self.stores))
-
-    def to_dict(self) -> dict:
-        from sceneforge.config import dataclass_to_dict
-
-        return dataclass_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict, *, what: str = "train config") -> "TrainConfig":
-        from sceneforge.config import dataclass_from_dict
-
-        try:
-            return dataclass_from_dict(cls, data)
-        except (TypeError, ValueError) as e:
-            raise SceneforgeError(f"{what}: {e}") from None
 
 
 # ------------------------------------------------------------------------- networks
@@ -196,7 +117,7 @@ def read_config(run: str | Path) -> TrainConfig:
 
 def frontal_nets(config: TrainConfig, device: torch.device | str = "cpu") -> dict[str, nn.Module]:
     """The frozen frontal nets an overhead (depth + seg) or camera (depth) stage reads."""
-    needed = {"overhead": ("depth", "seg"), "camera": ("depth",)}[config.stage]
+    needed = FROZEN[config.stage]
     nets = {}
     for stage in needed:
         run = getattr(config, f"{stage}_run")
