@@ -1,8 +1,9 @@
 """The dataset store: a zarr v3 group written by ``sceneforge render`` (SPEC §9).
 
 The layout is defined once, in ``schemas/store.schema.json``: every array's path, dtype,
-shape (``x-dims``), fill value and meaning. This module reads that table (:func:`layout`)
-to create, fill, read and check stores, so writer, reader and validator cannot disagree.
+shape (``x-dims``), fill value, source (``x-source``) and meaning. This module reads that
+table (:func:`layout`) to create, fill, read and check stores, so writer, reader and
+validator cannot disagree.
 
 - **Per-view arrays** have the view index first, one view per chunk, and
   ``config.store.views_per_shard`` views per shard file (zarr's sharding codec), each chunk
@@ -13,8 +14,10 @@ to create, fill, read and check stores, so writer, reader and validator cannot d
 - **Group attributes** hold the schema and package versions, the resolved config, the seed,
   the conventions, the NYU40 table, per-house provenance and the failure log.
 
-:func:`open_store` reads a store with numpy only (no PyTorch). :func:`validate_store` checks
-one against the schema and for internal consistency.
+This module is the only one that touches zarr. :class:`StoreWriter` writes a store (``sceneforge
+render`` and ``sceneforge predict`` both go through it); :func:`open_store` reads one with
+numpy only (no PyTorch); :func:`validate_store` checks one against the schema and for
+internal consistency; :func:`array_digests` fingerprints its contents.
 """
 
 from __future__ import annotations
