@@ -276,7 +276,7 @@ def test_depth_net_overfits_four_views(store, tmp_path):
 
 
 def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
-    from sceneforge.store import open_store
+    from sceneforge.store import open_store, validate_store
 
     run = tmp_path / "overhead"
     train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
@@ -286,6 +286,8 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
+    # schema, layout and attributes hold; what a 2-step net predicts fails content checks
+    assert [p for p in validate_store(str(out)) if not p.startswith(("view ", "... "))] == []
     for i in range(6):
         p, t = pred.view(i), truth.view(i)
         assert p["depth"].shape == t["depth"].shape and p["overhead_height"].shape == (32, 32)
