@@ -459,3 +459,27 @@ def test_sampler_config_checks_its_new_fields():
         CameraSamplerConfig(score_weights=(1.0, 1.0))
     with pytest.raises(ValueError, match="score_saturation"):
         CameraSamplerConfig(score_saturation=(1.0, 0.0, 1.0))
+
+
+def test_the_plan_record_keeps_the_sampler_report_and_matches_the_store_schema(tmp_path):
+    import jsonschema
+
+    from sceneforge import schemas
+    from sceneforge.config import DatasetConfig
+    from sceneforge.houses import discover
+    from sceneforge.houses.native import write_house
+    from sceneforge.pipeline import plan_house
+
+    write_house(three_room_house(), tmp_path / "three_rooms")
+    (source,) = discover(tmp_path / "three_rooms")
+    config = DatasetConfig(width=64, height=48, views_per_house=3,
+                           sampler=CameraSamplerConfig(check_width=40, check_height=30))
+    record = plan_house(source, config)
+    assert "failure" not in record and len(record["cam_to_world"]) == 3
+    info = record["cameras"]
+    assert info["source"] == "sampled" and info["accepted"] == 3
+    assert [(r["room"], r["accepted"]) for r in info["rooms"]] == [("r0", 1), ("r1", 1), ("r2", 1)]
+    assert len(info["views"]) == 3 and all(v["objects"] >= 1 for v in info["views"])
+    house_schema = {**schemas.load("store")["$defs"]["house"], "$defs": schemas.load("store")["$defs"]}
+    jsonschema.validate({**{k: record[k] for k in ("id", "format", "path", "cameras")}, "status": "ok",
+                         "views": [0, 3]}, house_schema)
