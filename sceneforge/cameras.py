@@ -519,20 +519,21 @@ def _rooms_to_sample(house: "House", surfaces: "FloorSurfaces", n: int, report: 
     ``report.skipped`` with the reason.
     """
     floor_rooms = {i.room_id for i in house.instances if i.category == NYU40_IDS["floor"]}
+    walkable = set(surfaces.room.tolist())
     keys = []
     for room in house.rooms:
-        if room.id in surfaces.room:
+        if room.id in walkable:
             keys.append((room.id, None))
         else:
             report.skipped[str(room.id)] = ("its floor has no up-facing horizontal face" if room.id in floor_rooms
                                             else "no floor instance")
     known = {room.id for room in house.rooms}
-    keys += [(r, None) for r in sorted({r for r in surfaces.room if r is not None and r not in known}, key=str)]
+    keys += [(r, None) for r in sorted(walkable - known - {None}, key=str)]
     keys += [(None, lv) for lv in sorted({int(lv) for lv, r in zip(surfaces.level, surfaces.room) if r is None})]
     cells = []
     for room, level in keys:
-        keep = np.array([r == room for r in surfaces.room]) if room is not None else (
-            np.equal(surfaces.room, None) & (surfaces.level == level))
+        keep = np.array([r == room if room is not None else r is None and lv == level
+                         for r, lv in zip(surfaces.room, surfaces.level)], dtype=bool)
         tris = surfaces.subset(keep)
         cells.append((RoomSampling(room, int(tris.level[0]), float(tris.area.sum()), n // len(keys)), tris))
     by_area = sorted(range(len(cells)), key=lambda k: -cells[k][0].floor_area)

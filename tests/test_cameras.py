@@ -341,6 +341,17 @@ def test_a_two_level_house_gets_cameras_on_both_levels_each_with_its_own_floor()
         assert (over.floor_y, over.floor_source) == (floor, "room floor")
 
 
+def test_a_house_without_rooms_is_sampled_level_by_level():
+    # As glTF/OBJ scenes come: no room records, no room ids; the floors' heights say their level.
+    house = two_level_house()
+    house.rooms = []
+    for inst in house.instances:
+        inst.room_id = None
+    cameras, report = sample_cameras(house, 4, np.random.default_rng(0), FAST)
+    assert [(r.room, r.level, r.share, r.accepted) for r in report.rooms] == [(None, 0, 2, 2), (None, 1, 2, 2)]
+    assert sorted(c.position[1] for c in cameras) == [1.5, 1.5, 4.5, 4.5]
+
+
 @pytest.mark.parametrize("per_room", [1, 2])
 def test_cameras_are_spread_over_the_rooms(per_room):
     house = three_room_house()
