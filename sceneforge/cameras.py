@@ -11,17 +11,18 @@ pyrender/OpenGL axes (x right, y up, z backward).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from functools import cached_property, lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .conventions import NYU40_IDS, tol
+from .conventions import NYU40_IDS, is_floor_cover, tol
 from .errors import HouseError, SceneforgeError
 
 if TYPE_CHECKING:
+    from .floors import FloorSurfaces
     from .houses.model import House
     from .raytrace import HouseTracer
 
@@ -302,8 +303,14 @@ def write_pbrs_cameras(
 # ---------------------------------------------------------------------------------------
 # Seeded camera sampler (SPEC §3)
 
-#: Rejection reasons of :func:`sample_cameras`, in the order the checks run.
-REJECT_REASONS = ("not_above_floor", "too_close", "escapes", "few_objects")
+#: Why :func:`sample_cameras` turned a candidate down, in the order the checks run; the
+#: last, ``outscored``, is a valid candidate its room had better ones than.
+REJECT_REASONS = (
+    "not_above_floor", "too_close", "escapes", "mostly_void", "mostly_envelope", "few_objects", "outscored",
+)
+#: The terms of a candidate's score (:meth:`CameraSamplerConfig.score`), in the order of
+#: ``score_weights`` and ``score_saturation``.
+SCORE_TERMS = ("objects", "d3_fraction", "envelope_distance")
 
 
 @dataclass(frozen=True)
@@ -322,66 +329,235 @@ class CameraSamplerConfig:
     half_fov_x: float = DEFAULT_HALF_FOV_X
     #: reject a camera closer than this to any surface, metres
     min_surface_distance: float = 0.4
-    #: reject a view where fewer pixels than this fraction see an object first
+    #: reject a view where fewer pixels than this fraction see a labelled (not void) object first
     min_object_fraction: float = 0.1
     #: reject a view where more pixels than this fraction hit nothing (escape the house)
     max_escape_fraction: float = 0.05
-    #: width of the low-resolution image the view checks trace (same field of view)
+    #: reject a view where more pixels than this fraction see a void (unlabelled) object
+    #: first: geometry the name map did not recognise, often walls (no view of the bundled
+    #: toy houses or the breakfast room sees any void; void walls fill 50–80 % of a view)
+    max_void_fraction: float = 0.3
+    #: reject a view where more pixels than this fraction see the room envelope first (a
+    #: view of a bare wall or floor; 22–63 % of the candidates standing free in the bundled
+    #: toy houses and the breakfast room are above 0.9)
+    max_envelope_fraction: float = 0.9
+    #: width of the low-resolution image the view checks and the score trace (same field of view)
     check_width: int = 80
-    #: height of the low-resolution image the view checks trace
+    #: height of the low-resolution image the view checks and the score trace
     check_height: int = 60
-    #: give up after this many candidates per requested camera
+    #: give up on a room after this many candidates per camera it is to get
     candidates_per_camera: int = 50
+    #: valid candidates scored per requested camera of a room; the best-scoring are kept
+    #: (1: the first valid candidates, no choice)
+    pool_per_camera: int = 4
+    #: weights of the score terms (distinct objects seen, fraction of pixels with a D3,
+    #: median D5 depth)
+    score_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    #: each score term counts up to this value and no further (objects, D3 fraction, metres)
+    score_saturation: tuple[float, float, float] = (8.0, 0.08, 4.0)
+    #: the cameras kept in a room stand at least this far apart (m) where its valid
+    #: candidates allow it, so that the best spot of a room is not taken twice
+    min_separation: float = 1.0
 
     def __post_init__(self):
         if not self.eye_height > 0:
             raise ValueError(f"eye_height must be positive, got {self.eye_height}")
         if not -math.pi / 2 < self.pitch < math.pi / 2:
             raise ValueError(f"pitch must be in (-pi/2, pi/2) radians, got {self.pitch}")
-        for name in ("min_object_fraction", "max_escape_fraction"):
+        for name in ("min_object_fraction", "max_escape_fraction", "max_void_fraction", "max_envelope_fraction"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        for name in ("width", "height", "check_width", "check_height", "candidates_per_camera"):
+        for name in ("width", "height", "check_width", "check_height", "candidates_per_camera",
+                     "pool_per_camera"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if len(self.score_weights) != 3 or min(self.score_weights) < 0:
+            raise ValueError(f"score_weights must be 3 numbers >= 0, got {self.score_weights}")
+        if len(self.score_saturation) != 3 or not min(self.score_saturation) > 0:
+            raise ValueError(f"score_saturation must be 3 numbers > 0, got {self.score_saturation}")
+        if self.min_separation < 0:
+            raise ValueError(f"min_separation must be >= 0, got {self.min_separation}")
 
     def view_direction(self, yaw: float) -> np.ndarray:
         """(3,) float64 unit view direction for a yaw (radians, 0 = +Z, pi/2 = +X) at the pitch."""
         c = math.cos(self.pitch)
         return np.array([c * math.sin(yaw), -math.sin(self.pitch), c * math.cos(yaw)])
 
+    def score(self, stats: "ViewStats") -> float:
+        """How informative a view is, the way PBRS chose its cameras: the weighted sum of
+        :data:`SCORE_TERMS`, each divided by its saturation and capped at 1 (0 for a view
+        with no envelope in sight)."""
+        distance = stats.envelope_distance if math.isfinite(stats.envelope_distance) else 0.0
+        terms = (stats.objects, stats.d3_fraction, distance)
+        return float(sum(w * min(t / s, 1.0)
+                         for w, t, s in zip(self.score_weights, terms, self.score_saturation)))
+
+
+@dataclass(frozen=True)
+class ViewStats:
+    """What a view sees, from its layers (:class:`~sceneforge.layers.Layers`, any size).
+
+    The fractions are of the view's pixels and say what each pixel sees first: nothing
+    (``escape``), the envelope, a void (unlabelled) object, a labelled object; they sum to 1.
+    ``objects`` counts the distinct labelled object instances of D1, ``d3_fraction`` is the
+    fraction of pixels with a D3 (an occluded second object), ``envelope_distance`` the
+    median planar depth of D5 in metres (NaN: no envelope in view).
+    """
+
+    objects: int
+    d3_fraction: float
+    envelope_distance: float
+    escape_fraction: float
+    envelope_fraction: float
+    void_fraction: float
+    object_fraction: float
+
+    @classmethod
+    def of(cls, layers) -> "ViewStats":
+        d1, d5 = np.isfinite(layers.depth[0]), np.isfinite(layers.depth[4])
+        labelled = d1 & (layers.category[0] != 0)
+        env = layers.depth[4][d5]
+        return cls(
+            objects=int(len(np.unique(layers.instance[0][labelled]))),
+            d3_fraction=float(np.isfinite(layers.depth[2]).mean()),
+            envelope_distance=float(np.median(env)) if len(env) else math.nan,
+            escape_fraction=float((~d1 & ~d5).mean()),
+            envelope_fraction=float((~d1 & d5).mean()),
+            void_fraction=float((d1 & ~labelled).mean()),
+            object_fraction=float(labelled.mean()),
+        )
+
+    def to_dict(self) -> dict:
+        """JSON-ready, rounded to 4 decimals; a NaN distance is None."""
+        return {k: (None if isinstance(v, float) and math.isnan(v) else round(v, 4) if isinstance(v, float) else v)
+                for k, v in asdict(self).items()}
+
+
+@dataclass
+class RoomSampling:
+    """One room's part of a sampling: its floor, its share of the cameras and what came of it.
+
+    ``room`` is None for floors without a room (one entry per level).
+    """
+
+    room: str | None
+    level: int
+    floor_area: float
+    share: int
+    candidates: int = 0
+    valid: int = 0
+    accepted: int = 0
+
+
+@dataclass
+class SampledView:
+    """An accepted camera's room, level, score and what it sees at the check resolution."""
+
+    room: str | None
+    level: int
+    score: float
+    stats: ViewStats
+
 
 @dataclass
 class SamplerReport:
-    """What :func:`sample_cameras` did: candidates tried and why each rejected one failed."""
+    """What :func:`sample_cameras` did: candidates tried, why each rejected one failed, each
+    room's share, the rooms skipped and why, and the accepted views' statistics (in the
+    order of the cameras)."""
 
     requested: int
     accepted: int = 0
     candidates: int = 0
     rejected: dict[str, int] = field(default_factory=lambda: dict.fromkeys(REJECT_REASONS, 0))
+    rooms: list[RoomSampling] = field(default_factory=list)
+    skipped: dict[str, str] = field(default_factory=dict)
+    views: list[SampledView] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: counts, per-reason rejections, rooms, skipped rooms, per-view stats."""
+        return {
+            "requested": self.requested,
+            "accepted": self.accepted,
+            "candidates": self.candidates,
+            "rejected": dict(self.rejected),
+            "rooms": [{**asdict(r), "floor_area": round(r.floor_area, 3)} for r in self.rooms],
+            "skipped": dict(self.skipped),
+            "views": [{"room": v.room, "level": v.level, "score": round(v.score, 4), **v.stats.to_dict()}
+                      for v in self.views],
+        }
 
 
-def _floor_triangles(house: "House") -> tuple[np.ndarray, np.ndarray]:
-    """Walkable floor triangles: corners (m, 3, 3) float64 and areas (m,) float64.
+@dataclass(eq=False)
+class _Candidate:
+    """A valid candidate: its camera, eye, score and statistics, and the order it came in."""
 
-    These are the horizontal faces of floor instances that face up (a floor slab's
-    underside is not walkable); a floor whose horizontal faces all face down has its
-    winding flipped, and those faces are used instead.
+    order: int
+    camera: Camera
+    score: float
+    stats: ViewStats
+
+
+def _floor_triangles(house: "House") -> "FloorSurfaces":
+    """The walkable floor triangles of ``house`` (:func:`sceneforge.floors.floor_surfaces`).
+
+    Raises :class:`HouseError` when there are none.
     """
-    found = []
-    for instance in house.instances:
-        if instance.category != NYU40_IDS["floor"]:
-            continue
-        t = instance.vertices[instance.faces]
-        n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-        up = n[:, 1] > 0.9 * np.linalg.norm(n, axis=1)
-        down = -n[:, 1] > 0.9 * np.linalg.norm(n, axis=1)
-        found.append(t[up] if up.any() else t[down])
-    tris = np.concatenate(found) if found else np.zeros((0, 3, 3))
-    if not len(tris):
+    from .floors import floor_surfaces
+
+    surfaces = floor_surfaces(house)
+    if not len(surfaces):
         raise HouseError(house.id, house.source_path, "no horizontal floor surface to place cameras on")
-    area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
-    return tris, area
+    return surfaces
+
+
+def _rooms_to_sample(house: "House", surfaces: "FloorSurfaces", n: int, report: SamplerReport) -> list:
+    """The rooms with a floor, each with its floor triangles and share of ``n`` cameras.
+
+    Rooms are taken in ``house.rooms`` order, then rooms only instances name (by id), then
+    floors without a room, one per level. Each gets ``n // rooms`` cameras, and the
+    remainder goes one each to the largest floors. Rooms without a floor go to
+    ``report.skipped`` with the reason.
+    """
+    floor_rooms = {i.room_id for i in house.instances if i.category == NYU40_IDS["floor"]}
+    walkable = set(surfaces.room.tolist())
+    keys = []
+    for room in house.rooms:
+        if room.id in walkable:
+            keys.append((room.id, None))
+        else:
+            report.skipped[str(room.id)] = ("its floor has no up-facing horizontal face" if room.id in floor_rooms
+                                            else "no floor instance")
+    known = {room.id for room in house.rooms}
+    keys += [(r, None) for r in sorted(walkable - known - {None}, key=str)]
+    keys += [(None, lv) for lv in sorted({int(lv) for lv, r in zip(surfaces.level, surfaces.room) if r is None})]
+    cells = []
+    for room, level in keys:
+        keep = np.array([r == room if room is not None else r is None and lv == level
+                         for r, lv in zip(surfaces.room, surfaces.level)], dtype=bool)
+        tris = surfaces.subset(keep)
+        cells.append((RoomSampling(room, int(tris.level[0]), float(tris.area.sum()), n // len(keys)), tris))
+    by_area = sorted(range(len(cells)), key=lambda k: -cells[k][0].floor_area)
+    for k in by_area[: n % len(cells)]:
+        cells[k][0].share += 1
+    return cells
+
+
+def _select(valid: list[_Candidate], k: int, min_separation: float) -> list[_Candidate]:
+    """The ``k`` best-scoring candidates (ties: the earlier one), skipping those closer than
+    ``min_separation`` to one already kept while others remain."""
+    ranked = sorted(valid, key=lambda c: (-c.score, c.order))
+    kept: list[_Candidate] = []
+    for c in ranked:
+        if len(kept) == k:
+            break
+        if all(np.linalg.norm(c.camera.position - o.camera.position) >= min_separation for o in kept):
+            kept.append(c)
+    for c in ranked:  # not enough far apart: fill up with the best of the rest
+        if len(kept) == k:
+            break
+        if c not in kept:
+            kept.append(c)
+    return sorted(kept, key=lambda c: (-c.score, c.order))
 
 
 def sample_cameras(
@@ -391,63 +567,119 @@ def sample_cameras(
     config: CameraSamplerConfig | None = None,
     tracer: "HouseTracer | None" = None,
 ) -> tuple[list[Camera], SamplerReport]:
-    """Sample up to ``n`` cameras inside the house's rooms (SPEC §3).
+    """Sample up to ``n`` cameras over the house's rooms, the most informative first (SPEC §3).
 
-    A candidate stands on a point drawn uniformly (by area) from the horizontal floor
-    triangles, ``eye_height`` above it, at the fixed pitch and a uniform random yaw. It is
-    rejected, in this order, when
+    **Rooms.** Every room with a floor gets its share of the ``n`` cameras (equal shares,
+    the remainder to the largest floors); floors without a room are sampled per level;
+    each room stands its cameras on its own floor, so every level of a house is sampled
+    with that level's floor. A room without a floor is skipped, with the reason in
+    ``report.skipped``.
 
-    - ``not_above_floor``: straight down, the first surface is not a floor ``eye_height``
-      below (the eye is above or inside furniture, or above the ceiling of a low room);
+    **Candidates.** A candidate stands on a point drawn uniformly (by area) from its room's
+    walkable floor triangles (:mod:`sceneforge.floors`), ``eye_height`` above it, at the
+    fixed pitch and a uniform random yaw. It is rejected, in this order, when
+
+    - ``not_above_floor``: straight down, the first surface is neither a floor at
+      ``eye_height`` (to ``tol.eye_above_floor``) nor a floor cover (rug, carpet, floor
+      mat: ``conventions.FLOOR_COVER_NAMES``) lying on it, its top at most
+      ``tol.floor_cover`` higher (the eye is above or inside furniture, or above the
+      ceiling of a low room);
     - ``too_close``: any surface is nearer than ``min_surface_distance``;
-    - ``escapes``: more than ``max_escape_fraction`` of the view's rays hit nothing;
-    - ``few_objects``: fewer than ``min_object_fraction`` of its pixels see an object first.
+    - then, from its layers traced at ``check_width``×``check_height`` (same field of
+      view; :class:`ViewStats`): ``escapes`` (more than ``max_escape_fraction`` of the
+      pixels see nothing), ``mostly_void`` (more than ``max_void_fraction`` see a void
+      object first), ``mostly_envelope`` (more than ``max_envelope_fraction`` see the
+      envelope first), ``few_objects`` (fewer than ``min_object_fraction`` see a labelled
+      object first).
 
-    The view checks trace a ``check_width``×``check_height`` image with the same field of
-    view. The result depends only on the house, ``config`` and the state of ``rng``; fewer
-    than ``n`` cameras come back when ``n * candidates_per_camera`` candidates run out.
+    **Choice.** A room draws candidates until it has ``pool_per_camera`` valid ones per
+    camera of its share (or ``candidates_per_camera`` candidates per camera ran out) and
+    keeps the best by :meth:`CameraSamplerConfig.score` (objects seen, D3 coverage, distance
+    to the envelope), at least ``min_separation`` apart where it can; the others count as
+    ``outscored``. Cameras a room could not fill come from the best unused valid candidates
+    of the other rooms.
+
+    The result depends only on the house, ``config`` and the state of ``rng``. Cameras come
+    room by room, best first; ``report.views`` gives each one's room, score and statistics.
     """
+    from .layers import instance_labels, layers_from_frontal
     from .raytrace import HouseTracer
 
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     config = config or CameraSamplerConfig()
     tracer = tracer or HouseTracer(house)
-    tris, area = _floor_triangles(house)
-    p_tri = area / area.sum()
+    surfaces = _floor_triangles(house)
+    report = SamplerReport(requested=n)
+    cells = _rooms_to_sample(house, surfaces, n, report)
+    report.rooms = [room for room, _ in cells]
+
     K = default_intrinsics(config.width, config.height, config.half_fov_x)
-    envelope = np.array([i.envelope for i in house.instances], dtype=bool)
+    inst_category, _ = instance_labels(house)
     # index -1 (no hit) reads the extra False at the end
     is_floor = np.array([i.category == NYU40_IDS["floor"] for i in house.instances] + [False])
+    is_cover = np.array([is_floor_cover(i.category, i.label) for i in house.instances] + [False])
     down = np.array([[0.0, -1.0, 0.0]])
+    h = config.eye_height
 
-    report = SamplerReport(requested=n)
-    cameras: list[Camera] = []
-    while len(cameras) < n and report.candidates < n * config.candidates_per_camera:
-        report.candidates += 1
-        k = rng.choice(len(tris), p=p_tri)
-        r1, r2, yaw = rng.random(), rng.random(), rng.random() * 2 * math.pi
-        s = math.sqrt(r1)
-        a, b, c = tris[k]
-        eye = (1 - s) * a + s * (1 - r2) * b + s * r2 * c + [0.0, config.eye_height, 0.0]
-
+    def check(eye: np.ndarray, yaw: float) -> tuple[str | None, Camera | None, ViewStats | None]:
         below = tracer.first_hit(eye[None], down)
-        if not (is_floor[below.instance[0]] and abs(below.t[0] - config.eye_height) < tol.eye_above_floor):
-            report.rejected["not_above_floor"] += 1
-            continue
+        k, t = below.instance[0], below.t[0]
+        on_floor = is_floor[k] and abs(t - h) < tol.eye_above_floor
+        on_cover = is_cover[k] and h - tol.floor_cover <= t <= h + tol.eye_above_floor
+        if not (on_floor or on_cover):
+            return "not_above_floor", None, None
         if tracer.closest_distance(eye[None])[0] < config.min_surface_distance:
-            report.rejected["too_close"] += 1
-            continue
+            return "too_close", None, None
         camera = Camera(K, pose_from_view(eye, config.view_direction(yaw)), config.width, config.height)
-        origins, directions, _ = camera.resized(config.check_width, config.check_height).rays()
-        first = tracer.first_hit(origins, directions)
-        hit = first.instance >= 0
-        if 1.0 - hit.mean() > config.max_escape_fraction:
-            report.rejected["escapes"] += 1
-            continue
-        if (hit & ~envelope[np.maximum(first.instance, 0)]).mean() < config.min_object_fraction:
-            report.rejected["few_objects"] += 1
-            continue
-        cameras.append(camera)
+        small = camera.resized(config.check_width, config.check_height)
+        origins, directions, depth_scale = small.rays()
+        layers = layers_from_frontal(tracer.frontal_query(origins, directions), depth_scale, inst_category,
+                                     small.shape)
+        stats = ViewStats.of(layers)
+        if stats.escape_fraction > config.max_escape_fraction:
+            return "escapes", None, None
+        if stats.void_fraction > config.max_void_fraction:
+            return "mostly_void", None, None
+        if stats.envelope_fraction > config.max_envelope_fraction:
+            return "mostly_envelope", None, None
+        if stats.object_fraction < config.min_object_fraction:
+            return "few_objects", None, None
+        return None, camera, stats
+
+    chosen: list[tuple[RoomSampling, list[_Candidate]]] = []
+    spare: list[tuple[RoomSampling, _Candidate]] = []
+    for room, tris in cells:
+        p_tri = tris.area / tris.area.sum()
+        valid: list[_Candidate] = []
+        while (len(valid) < room.share * config.pool_per_camera
+               and room.candidates < room.share * config.candidates_per_camera):
+            room.candidates += 1
+            report.candidates += 1
+            k = rng.choice(len(tris), p=p_tri)
+            r1, r2, yaw = rng.random(), rng.random(), rng.random() * 2 * math.pi
+            s = math.sqrt(r1)
+            a, b, c = tris.corners[k]
+            eye = (1 - s) * a + s * (1 - r2) * b + s * r2 * c + [0.0, h, 0.0]
+            reason, camera, stats = check(eye, yaw)
+            if reason is not None:
+                report.rejected[reason] += 1
+                continue
+            valid.append(_Candidate(report.candidates, camera, config.score(stats), stats))
+        room.valid = len(valid)
+        kept = _select(valid, room.share, config.min_separation)
+        chosen.append((room, kept))
+        spare += [(room, c) for c in valid if c not in kept]
+    missing = n - sum(len(kept) for _, kept in chosen)
+    spare.sort(key=lambda rc: (-rc[1].score, rc[1].order))
+    extra = spare[:max(missing, 0)]
+    report.rejected["outscored"] += len(spare) - len(extra)
+
+    cameras: list[Camera] = []
+    for room, kept in chosen + [(room, [c]) for room, c in extra]:
+        room.accepted += len(kept)
+        for c in kept:
+            cameras.append(c.camera)
+            report.views.append(SampledView(room.room, room.level, c.score, c.stats))
     report.accepted = len(cameras)
     return cameras, report

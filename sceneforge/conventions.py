@@ -61,6 +61,10 @@ ENVELOPE_NAMES: frozenset[str] = frozenset({
 })
 #: Categories dropped at load time (PBRS ignores persons and plants).
 DROPPED_NAMES: frozenset[str] = frozenset({"person", "plant"})
+#: Floor covers: envelope lying on the floor that a camera may stand over (a room-sized rug
+#: is the first surface below most of a furnished room). NYU40 ``floor_mat``, or a source
+#: category rug/carpet (matched like every class list, :func:`in_classes`).
+FLOOR_COVER_NAMES: frozenset[str] = frozenset({"floor_mat", "rug", "carpet"})
 
 #: Order of the frontal depth layers in every array with a layer axis.
 LAYER_NAMES: tuple[str, ...] = ("D1", "D2", "D3", "D4", "D5")
@@ -120,6 +124,11 @@ def is_dropped(category: int, label: str | None = None) -> bool:
     return in_classes(category, label, DROPPED_NAMES)
 
 
+def is_floor_cover(category: int, label: str | None = None) -> bool:
+    """True when an instance is a floor cover (floor mat, rug, carpet)."""
+    return in_classes(category, label, FLOOR_COVER_NAMES)
+
+
 @dataclass(frozen=True)
 class Tolerances:
     """Every tolerance of the project: metres unless a field says otherwise."""
@@ -145,6 +154,18 @@ class Tolerances:
     #: a sampled eye is above the floor when the floor hit straight below it is at eye
     #: height to within this (the eye is placed at eye height over a floor triangle)
     eye_above_floor: float = 1e-3
+    #: a floor cover (rug, carpet, floor mat) first hit straight below a sampled eye counts
+    #: as the floor when its top is at most this far above the floor (rugs are 0.5–3 cm)
+    floor_cover: float = 0.05
+    #: a floor face is horizontal (walkable) when the y component of its unit normal is
+    #: above this, unitless (0.9: slopes under 25.8°)
+    floor_face_cos: float = 0.9
+    #: a point is over a floor triangle when its barycentric coordinates in the x–z plane
+    #: are at least minus this, unitless (a point on a shared edge is over both)
+    floor_footprint: float = 1e-9
+    #: a floor surface without a known room is on the highest level whose ``floor_y`` is at
+    #: most this above it (a level's ``floor_y`` is at or below its floor tops)
+    level_floor: float = 0.01
     #: a view direction and an up vector are parallel (no roll can be defined) when the
     #: sine of their angle is below this, unitless
     parallel: float = 1e-9

@@ -35,6 +35,7 @@ from .conventions import (
     tol,
 )
 from .errors import MissingDependencyError, SceneforgeError
+from .floors import floor_surfaces, level_at
 from .layers import Layers, instance_labels, layers_from_frontal
 
 if TYPE_CHECKING:
@@ -47,6 +48,11 @@ if TYPE_CHECKING:
 
 CANDIDATE_NAMES: tuple[str, ...] = ("depth_statistics", "envelope_frustum", "majority_room")
 FLOOR = NYU40_IDS["floor"]
+#: Where a view's floor height comes from, in the order they are tried (see
+#: :func:`frontal_points_fast`): the top of the floor straight below the camera, the median
+#: height of the view's D5 floor pixels, the tops of the floors of the camera's level, the
+#: level's ``floor_y`` (for SUNCG the bottom of its bounding box).
+FLOOR_SOURCES: tuple[str, ...] = ("room floor", "view floor pixels", "level floor", "level bbox")
 
 
 @dataclass(frozen=True)
@@ -380,6 +386,8 @@ class OverheadCamera:
     floor_y      : float           world height of the floor the heights refer to
     box          : Box             the square it sees, in the frontal gravity-aligned frame
     candidates   : the three heuristic boxes with their weights and rejection reasons
+    floor_source : where ``floor_y`` came from, one of :data:`FLOOR_SOURCES` (None: given
+                   by the caller)
     """
 
     cam_to_world: np.ndarray
@@ -389,6 +397,7 @@ class OverheadCamera:
     floor_y: float
     box: Box
     candidates: tuple[Candidate, ...] = field(default=())
+    floor_source: str | None = None
 
     @property
     def width(self) -> int:
@@ -432,10 +441,9 @@ class OverheadCamera:
 
 
 def level_floor_y(house: "House", y: float) -> float:
-    """Floor height of the storey a point at height ``y`` is on (the lowest if it is below all)."""
-    floors = sorted(level.floor_y for level in house.levels)
-    below = [f for f in floors if f <= y]
-    return below[-1] if below else floors[0]
+    """``floor_y`` of the storey a point at height ``y`` is on (the lowest if it is below all):
+    the last resort of a view's floor height, as it may be a bounding box's bottom."""
+    return level_at(house, y).floor_y
 
 
 def _class_mask(house: "House", names) -> np.ndarray:
@@ -482,8 +490,8 @@ def _take_columns(table: np.ndarray, idx: np.ndarray, out: np.ndarray) -> None:
 
 def frontal_points_fast(
     house: "House", camera: "Camera", layers: Layers, frame: GravityFrame, config: OverheadConfig
-) -> tuple[FrontalPoints, float]:
-    """Collect the heuristics' inputs from a frontal view, and the view's floor height.
+) -> tuple[FrontalPoints, float, str]:
+    """Collect the heuristics' inputs from a frontal view, the view's floor height and its source.
 
     The plain algorithm (SPEC §6), which ``plain_frontal_points`` in tests/test_overhead.py
     spells out and ``test_frontal_points_fast_equals_the_plain_version_on_toy_views`` holds
@@ -491,9 +499,12 @@ def frontal_points_fast(
     planar depth, in the gravity frame, with the room and the exclusion of its layer's
     instance (D1 and D2: the D1 instance, D3 and D4: the D3 one); D5's finite pixels give
     their planar depths and heights; the top is the highest point of D1, D2 and D5; each
-    pixel with a D1 instance votes for that instance's room. The floor height is the
-    median world height of the D5 pixels whose class is floor, or the house's storey
-    floor under the camera when the view shows no floor.
+    pixel with a D1 instance votes for that instance's room. The floor height is the first
+    of :data:`FLOOR_SOURCES` that exists: the top of the floor straight below the camera
+    (:meth:`~sceneforge.floors.FloorSurfaces.height_below`: the camera's room, whatever
+    rugs or objects hide in the view); else the median world height of the D5 pixels whose
+    class is floor; else the area-weighted median top of the floors of the camera's level
+    (:meth:`~sceneforge.floors.FloorSurfaces.level_height`); else that level's ``floor_y``.
 
     The fast kernel: every pass over a layer's pixels costs, so the points are built
     straight in the frame from one per-view table (:func:`_frame_rays`) into one
@@ -578,13 +589,20 @@ def frontal_points_fast(
         room_ids=room_ids,
         top=float(max(t.max() for t in tops)),
     )
+    eye = camera.cam_to_world[:3, 3]
+    surfaces = floor_surfaces(house)
+    floor_y = surfaces.height_below(eye)
+    if floor_y is not None:
+        return points, floor_y, FLOOR_SOURCES[0]
     floor = env_category == FLOOR
     if floor.any():
         # The frame's up axis is world +Y from the frame origin.
         floor_y = float(np.median(env_up[floor], overwrite_input=True)) + float(frame.origin[1])
-    else:
-        floor_y = level_floor_y(house, float(frame.origin[1]))
-    return points, floor_y
+        return points, floor_y, FLOOR_SOURCES[1]
+    floor_y = surfaces.level_height(level_at(house, float(eye[1])).id, float(eye[1]))
+    if floor_y is not None:
+        return points, floor_y, FLOOR_SOURCES[2]
+    return points, level_floor_y(house, float(eye[1])), FLOOR_SOURCES[3]
 
 
 def place_overhead_camera(
@@ -593,11 +611,13 @@ def place_overhead_camera(
     tan_half_fov: float,
     floor_y: float,
     config: OverheadConfig | None = None,
+    floor_source: str | None = None,
 ) -> OverheadCamera:
     """The overhead camera from a frontal view's points (SPEC §6).
 
     tan_half_fov : tan of the frontal camera's horizontal half field of view
     floor_y      : world height of the floor (``tz`` is the camera height above it)
+    floor_source : where ``floor_y`` came from (:data:`FLOOR_SOURCES`), kept with the camera
     """
     config = config or OverheadConfig()
     candidates = (
@@ -619,7 +639,7 @@ def place_overhead_camera(
     pose[:3, 3] = position
     params = np.array([tx, ty, position[1] - floor_y, frame.theta, half * np.sqrt(2.0)])
     return OverheadCamera(pose, half, int(config.resolution), params, float(floor_y), square,
-                          candidates)
+                          candidates, floor_source)
 
 
 def overhead_camera_and_points(
@@ -628,9 +648,9 @@ def overhead_camera_and_points(
     """The overhead camera of a frontal view and the frontal points it was chosen from."""
     config = config or OverheadConfig()
     frame = gravity_frame(camera)
-    points, floor_y = frontal_points_fast(house, camera, layers, frame, config)
+    points, floor_y, source = frontal_points_fast(house, camera, layers, frame, config)
     tan_half_fov = float(np.tan(camera.half_fov[0]))
-    return place_overhead_camera(frame, points, tan_half_fov, floor_y, config), points
+    return place_overhead_camera(frame, points, tan_half_fov, floor_y, config, source), points
 
 
 def overhead_camera(

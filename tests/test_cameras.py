@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,8 +12,10 @@ import trimesh
 
 from sceneforge.cameras import (
     REJECT_REASONS,
+    SCORE_TERMS,
     Camera,
     CameraSamplerConfig,
+    ViewStats,
     camera_from_pbrs,
     default_intrinsics,
     look_at_camera,
@@ -24,6 +28,8 @@ from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.errors import HouseError, SceneforgeError
 from sceneforge.houses import House, make_instance
 from sceneforge.raytrace import HouseTracer
+
+from .hard_houses import add_box_room, furnish, rug_room, three_room_house, two_level_house
 
 
 def test_default_intrinsics_match_spec():
@@ -274,3 +280,217 @@ def test_sampler_needs_a_floor_and_a_generator():
         sample_cameras(box_room(), 1, 0)
     with pytest.raises(ValueError, match="max_escape_fraction"):
         CameraSamplerConfig(max_escape_fraction=1.5)
+
+
+# ---------------------------------------------------------------------------------------
+# Sampler on the hard cases of real houses (tests/hard_houses.py)
+
+FAST = CameraSamplerConfig(width=64, height=48, check_width=40, check_height=30)
+
+
+def views_of(house, cameras, tracer):
+    from sceneforge.layers import frontal_layers
+    from sceneforge.overhead import OverheadConfig, overhead_camera
+
+    for camera in cameras:
+        layers = frontal_layers(house, camera, tracer)
+        yield layers, overhead_camera(house, camera, layers, OverheadConfig(resolution=32))
+
+
+def test_a_room_sized_rug_gets_every_camera_and_the_true_floor_in_every_view():
+    # 90 % of the floor is under a 1 cm rug: the first surface below most candidates.
+    house = rug_room()
+    tracer = HouseTracer(house)
+    cameras, report = sample_cameras(house, 6, np.random.default_rng(0), FAST, tracer)
+    assert len(cameras) == report.accepted == 6
+    on_rug, hidden = 0, 0
+    for camera, (layers, over) in zip(cameras, views_of(house, cameras, tracer)):
+        assert camera.position[1] == 1.5  # over the floor top (y = 0), not the rug top
+        on_rug += camera.position[2] < 2.0
+        # The floor's top surface, exactly: not the rug's top, not the level's slab bottom
+        # (-0.1), with or without floor pixels in view.
+        assert (over.floor_y, over.floor_source) == (0.0, "room floor")
+        assert over.params[2] == over.cam_to_world[1, 3]
+        hidden += not (layers.envelope_category == NYU40_IDS["floor"]).any()
+    assert on_rug >= 4 and hidden >= 1
+
+
+def test_a_rug_on_the_floor_is_stood_on_but_not_one_on_furniture_or_too_thick():
+    house = rug_room()
+    stand = np.array([[0.0, 1.5, 1.0]])  # over the rug, 1.5 m above the floor
+    cameras, report = sample_cameras(house, 2, np.random.default_rng(1), FAST)
+    assert report.accepted == 2
+    thick = rug_room(thickness=tol.floor_cover + 0.02)
+    cameras, report = sample_cameras(thick, 2, np.random.default_rng(1), FAST)
+    # only the bare 0.5 m strip is left to stand on
+    assert all(c.position[2] > 2.0 for c in cameras)
+    assert report.rejected["not_above_floor"] > 0
+    first = HouseTracer(house).first_hit(stand, np.array([[0.0, -1.0, 0.0]]))
+    assert house.instances[first.instance[0]].label == "rug"
+
+
+def test_a_two_level_house_gets_cameras_on_both_levels_each_with_its_own_floor():
+    house = two_level_house()
+    tracer = HouseTracer(house)
+    cameras, report = sample_cameras(house, 4, np.random.default_rng(0), FAST, tracer)
+    assert [(r.room, r.level, r.share, r.accepted) for r in report.rooms] == [("r0", 0, 2, 2), ("r1", 1, 2, 2)]
+    assert [v.level for v in report.views] == [0, 0, 1, 1]
+    for camera, view, (_, over) in zip(cameras, report.views, views_of(house, cameras, tracer)):
+        floor = 3.0 if view.level == 1 else 0.0
+        assert camera.position[1] == floor + 1.5
+        assert (over.floor_y, over.floor_source) == (floor, "room floor")
+
+
+def test_a_house_without_rooms_is_sampled_level_by_level():
+    # As glTF/OBJ scenes come: no room records, no room ids; the floors' heights say their level.
+    house = two_level_house()
+    house.rooms = []
+    for inst in house.instances:
+        inst.room_id = None
+    cameras, report = sample_cameras(house, 4, np.random.default_rng(0), FAST)
+    assert [(r.room, r.level, r.share, r.accepted) for r in report.rooms] == [(None, 0, 2, 2), (None, 1, 2, 2)]
+    assert sorted(c.position[1] for c in cameras) == [1.5, 1.5, 4.5, 4.5]
+
+
+@pytest.mark.parametrize("per_room", [1, 2])
+def test_cameras_are_spread_over_the_rooms(per_room):
+    house = three_room_house()
+    cameras, report = sample_cameras(house, 3 * per_room, np.random.default_rng(4), FAST)
+    assert [(r.room, r.share, r.accepted) for r in report.rooms] == [(f"r{k}", per_room, per_room) for k in range(3)]
+    for k in range(3):  # room k spans x in 5.2 k ± 2.5
+        inside = [c for c in cameras if abs(c.position[0] - 5.2 * k) < 2.5]
+        assert len(inside) == per_room
+        assert [v.room for v in report.views].count(f"r{k}") == per_room
+
+
+def test_the_remainder_goes_to_the_largest_floors_and_a_room_without_floor_is_skipped():
+    house = three_room_house()
+    for inst in house.instances:  # r1 loses its floor; r2 gets a larger one
+        if inst.name == "r1_floor":
+            inst.category = NYU40_IDS["otherprop"]
+        if inst.name == "r2_floor":
+            inst.vertices = inst.vertices * [1.01, 1.0, 1.0] + [-0.1, 0.0, 0.0]
+    house.rooms.append(type(house.rooms[0])("r9", "closet", 0))
+    cameras, report = sample_cameras(house, 3, np.random.default_rng(0), FAST)
+    assert report.skipped == {"r1": "no floor instance", "r9": "no floor instance"}
+    assert [(r.room, r.share) for r in report.rooms] == [("r0", 1), ("r2", 2)]
+    assert report.accepted == 3
+
+
+def test_views_of_mostly_void_or_mostly_envelope_are_rejected_with_their_reason():
+    # Walls the name map did not recognise (void, like a glTF "room_skeleton").
+    void = House(id="void", instances=[])
+    add_box_room(void, "r0", wall_category=0)
+    furnish(void, "r0")
+    _, report = sample_cameras(void, 2, np.random.default_rng(0), FAST)
+    assert report.rejected["mostly_void"] > 0 and report.accepted < 2
+    loose = CameraSamplerConfig(width=64, height=48, check_width=40, check_height=30, max_void_fraction=1.0,
+                                min_object_fraction=0.0)
+    _, report = sample_cameras(void, 2, np.random.default_rng(0), loose)
+    assert report.rejected["mostly_void"] == 0 and report.accepted == 2
+    # An empty room: every view sees only envelope.
+    empty = House(id="empty", instances=[])
+    add_box_room(empty, "r0")
+    cameras, report = sample_cameras(empty, 2, np.random.default_rng(0), FAST)
+    assert cameras == [] and report.rejected["mostly_envelope"] > 0
+    assert report.rejected["few_objects"] == 0 and report.rejected["mostly_void"] == 0
+
+
+def test_the_best_scoring_valid_candidate_is_kept():
+    # With pool_per_camera = 1 the first valid candidates are kept, in score order; with a
+    # pool of 4 for one camera, the same random stream gives those same 4 candidates, and
+    # the best of them is kept.
+    house = rug_room()
+    tracer = HouseTracer(house)
+    first = replace(FAST, pool_per_camera=1, min_separation=0.0)
+    four, report4 = sample_cameras(house, 4, np.random.default_rng(3), first, tracer)
+    assert report4.rejected["outscored"] == 0
+    scores = [v.score for v in report4.views]
+    assert scores == sorted(scores, reverse=True) and scores[0] > scores[-1]
+    best, report = sample_cameras(house, 1, np.random.default_rng(3), replace(first, pool_per_camera=4), tracer)
+    np.testing.assert_array_equal(best[0].cam_to_world, four[0].cam_to_world)
+    assert report.rejected["outscored"] == 3 and report.views[0].score == scores[0]
+    assert report.views[0].score == pytest.approx(FAST.score(report.views[0].stats))
+
+
+def test_kept_cameras_of_a_room_stand_apart_while_candidates_allow():
+    house = rug_room()
+    cameras, _ = sample_cameras(house, 3, np.random.default_rng(0), replace(FAST, min_separation=1.0))
+    positions = np.array([c.position for c in cameras])
+    gaps = np.linalg.norm(positions[:, None] - positions[None], axis=-1)[np.triu_indices(3, 1)]
+    assert gaps.min() >= 1.0
+
+
+def test_sampling_is_deterministic_and_the_report_is_json():
+    house = three_room_house()
+    tracer = HouseTracer(house)
+    a, ra = sample_cameras(house, 6, np.random.default_rng(21), FAST, tracer)
+    b, rb = sample_cameras(house, 6, np.random.default_rng(21), FAST, HouseTracer(house))
+    assert [c.cam_to_world.tolist() for c in a] == [c.cam_to_world.tolist() for c in b]
+    assert ra == rb and ra.to_dict() == rb.to_dict()
+    c, _ = sample_cameras(house, 6, np.random.default_rng(22), FAST, tracer)
+    assert [x.cam_to_world.tolist() for x in a] != [x.cam_to_world.tolist() for x in c]
+    d = json.loads(json.dumps(ra.to_dict()))
+    assert d["accepted"] == 6 and d["candidates"] == ra.candidates == ra.accepted + sum(ra.rejected.values())
+    assert set(d["rejected"]) == set(REJECT_REASONS)
+    assert [r["room"] for r in d["rooms"]] == ["r0", "r1", "r2"]
+    assert len(d["views"]) == 6
+    for view in d["views"]:
+        assert set(view) == {"room", "level", "score", *SCORE_TERMS, "escape_fraction", "envelope_fraction",
+                             "void_fraction", "object_fraction"}
+        assert view["objects"] >= 1 and 0 < view["envelope_distance"] < 8
+
+
+def test_view_stats_of_hand_made_layers():
+    from sceneforge.layers import Layers
+
+    nan = np.nan
+    depth = np.full((5, 2, 3), nan, dtype=np.float32)
+    # pixels: object 3 (labelled), object 4 (labelled), void object 5, envelope, envelope, nothing
+    depth[0] = [[1, 1, 1], [nan, nan, nan]]
+    depth[2] = [[2, nan, nan], [nan, nan, nan]]
+    depth[4] = [[3, 3, 4], [5, 6, nan]]
+    category = np.zeros((3, 2, 3), dtype=np.uint8)
+    category[0] = [[5, 7, 0], [0, 0, 0]]
+    instance = np.full((2, 2, 3), -1, dtype=np.int32)
+    instance[0] = [[3, 4, 5], [-1, -1, -1]]
+    stats = ViewStats.of(Layers(depth, category, instance, np.zeros((3, 2, 3), np.float32)))
+    assert stats == ViewStats(objects=2, d3_fraction=1 / 6, envelope_distance=4.0, escape_fraction=1 / 6,
+                              envelope_fraction=2 / 6, void_fraction=1 / 6, object_fraction=2 / 6)
+    config = CameraSamplerConfig(score_weights=(1.0, 2.0, 0.5), score_saturation=(4.0, 0.1, 2.0))
+    assert config.score(stats) == pytest.approx(2 / 4 + 2 * 1.0 + 0.5 * 1.0)
+
+
+def test_sampler_config_checks_its_new_fields():
+    with pytest.raises(ValueError, match="max_void_fraction"):
+        CameraSamplerConfig(max_void_fraction=-0.1)
+    with pytest.raises(ValueError, match="pool_per_camera"):
+        CameraSamplerConfig(pool_per_camera=0)
+    with pytest.raises(ValueError, match="score_weights"):
+        CameraSamplerConfig(score_weights=(1.0, 1.0))
+    with pytest.raises(ValueError, match="score_saturation"):
+        CameraSamplerConfig(score_saturation=(1.0, 0.0, 1.0))
+
+
+def test_the_plan_record_keeps_the_sampler_report_and_matches_the_store_schema(tmp_path):
+    import jsonschema
+
+    from sceneforge import schemas
+    from sceneforge.config import DatasetConfig
+    from sceneforge.houses import discover
+    from sceneforge.houses.formats.native import write_house
+    from sceneforge.pipeline import plan_house
+
+    write_house(three_room_house(), tmp_path / "three_rooms")
+    (source,) = discover(tmp_path / "three_rooms")
+    config = DatasetConfig(width=64, height=48, views_per_house=3,
+                           sampler=CameraSamplerConfig(check_width=40, check_height=30))
+    record = plan_house(source, config)
+    assert "failure" not in record and len(record["cam_to_world"]) == 3
+    info = record["cameras"]
+    assert info["source"] == "sampled" and info["accepted"] == 3
+    assert [(r["room"], r["accepted"]) for r in info["rooms"]] == [("r0", 1), ("r1", 1), ("r2", 1)]
+    assert len(info["views"]) == 3 and all(v["objects"] >= 1 for v in info["views"])
+    house_schema = {**schemas.load("store")["$defs"]["house"], "$defs": schemas.load("store")["$defs"]}
+    jsonschema.validate({**{k: record[k] for k in ("id", "format", "path", "cameras")}, "status": "ok",
+                         "views": [0, 3]}, house_schema)

@@ -95,7 +95,9 @@ def test_voxels_per_view_and_histogram(store, tmp_path):
     assert res.exit_code == 0, res.output
     ious = [float(line.split("IoU")[1].split()[0])
             for line in res.output.splitlines() if line.startswith("view")]
-    assert len(ious) == 3 and all(0.3 < x <= 1 for x in ious)
+    # toy_0_000's sampled view (issue 12's informative sampler) faces the office bookshelf:
+    # its (D1, D2) interval spans the open shelves, which the solid mesh does not fill (0.27)
+    assert len(ious) == 3 and all(0.25 < x <= 1 for x in ious) and sorted(ious)[1] > 0.6
     mean = float(res.output.split("mean voxel IoU")[1].split()[0])
     assert mean == pytest.approx(np.mean(ious), abs=1e-3)
     assert png.stat().st_size > 5_000

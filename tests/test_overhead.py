@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from sceneforge.cli.main import cli
 
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
-from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes
+from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes, tol
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.houses.formats.native import write_house
@@ -38,6 +38,7 @@ from sceneforge.overhead import (
 from sceneforge.raytrace import HouseTracer
 
 from .conftest import box_instance, box_room
+from .hard_houses import rug_room, two_level_house
 
 CONFIG = OverheadConfig()
 
@@ -313,7 +314,7 @@ def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(hol
         depth[k][rng.random(depth[k].shape) < 0.2] = np.nan
     layers = Layers(depth, layers.category, layers.instance, layers.normal)
     frame = gravity_frame(camera)
-    points, floor_y = frontal_points_fast(house, camera, layers, frame, CONFIG)
+    points, floor_y, floor_source = frontal_points_fast(house, camera, layers, frame, CONFIG)
 
     origins, directions, scale = camera.rays()
     finite = [np.isfinite(d.ravel()) for d in depth]
@@ -324,9 +325,12 @@ def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(hol
     np.testing.assert_array_equal(points.envelope_z, depth[4].ravel()[finite[4]])
     top = max(frame.to_frame(world[k])[:, 1].max() for k in (0, 1, 4))
     assert points.top == pytest.approx(top, abs=1e-12)
+    # The camera stands over the floor: its height is the floor's top, exactly, not the
+    # median of the view's floor pixels (float32 depths: within 1e-5 of it).
     floor = layers.category[2].ravel()[finite[4]] == 2
     assert floor.any()
-    assert floor_y == pytest.approx(np.median(world[4][floor, 1]), abs=1e-12)
+    assert (floor_y, floor_source) == (0.0, "room floor")
+    assert floor_y == pytest.approx(np.median(world[4][floor, 1]), abs=1e-5)
     # Rooms are indices into the sorted room ids; every visible D1 pixel votes.
     assert points.room_ids == ("r0", "r1")
     rooms = np.array([i.room_id for i in house.instances])
@@ -349,8 +353,8 @@ def plain_frontal_points(house, camera, layers, frame, config):
     (``_frame_rays``; the test above pins those rays to the back-projected world points).
     Points of D1, D2 take the D1 instance's room and exclusion, those of D3, D4 the D3
     instance's; D5 gives planar depths and heights; the top is the highest of D1, D2 and
-    D5; every pixel showing an instance in D1 votes for its room; the floor is the median
-    height of D5's floor pixels, else the storey floor under the camera.
+    D5; every pixel showing an instance in D1 votes for its room; the floor and its source
+    are :func:`plain_floor`'s.
     """
     rays = _frame_rays(camera, frame)
     offset = frame.to_frame(camera.cam_to_world[None, :3, 3])[0]
@@ -386,12 +390,81 @@ def plain_frontal_points(house, camera, layers, frame, config):
         if k >= 0 and room(k) >= 0:
             votes[room(k)] += 1
     floor = layers.envelope_category.reshape(-1)[pixels] == 2
-    if floor.any():
-        floor_y = float(np.median(envelope_up[floor])) + float(frame.origin[1])
-    else:
-        floor_y = level_floor_y(house, float(frame.origin[1]))
-    return FrontalPoints(np.concatenate(objects), np.array(rooms), np.array(skip, dtype=bool), envelope_z,
-                         votes, room_ids, float(max(u.max() for u in ups if len(u)))), floor_y
+    floor_pixels = envelope_up[floor] + float(frame.origin[1])
+    return (FrontalPoints(np.concatenate(objects), np.array(rooms), np.array(skip, dtype=bool), envelope_z,
+                          votes, room_ids, float(max(u.max() for u in ups if len(u)))),
+            *plain_floor(house, camera.position, floor_pixels))
+
+
+def plain_floor_faces(house):
+    """(corners, room, level id) of every walkable floor face, one face at a time: the faces
+    of floor instances whose normal points up within tol.floor_face_cos (those pointing
+    down, reversed, when none does), on their room's level, else on the highest level at
+    most tol.level_floor above their top."""
+    room_level = {r.id: r.level for r in house.rooms}
+    faces = []
+    for inst in house.instances:
+        if inst.category != 2:
+            continue
+        up, down = [], []
+        for face in inst.faces:
+            a, b, c = inst.vertices[face]
+            n = np.cross(b - a, c - a)
+            if n[1] > tol.floor_face_cos * np.linalg.norm(n):
+                up.append((a, b, c))
+            elif -n[1] > tol.floor_face_cos * np.linalg.norm(n):
+                down.append((c, b, a))
+        for corners in up or down:
+            top = max(p[1] for p in corners)
+            if inst.room_id in room_level:
+                level = room_level[inst.room_id]
+            else:
+                level = plain_level_at(house, top + tol.level_floor).id
+            faces.append((corners, inst.room_id, level))
+    return faces
+
+
+def plain_level_at(house, y):
+    """The level with the highest floor_y at or below y, else the lowest."""
+    levels = sorted(house.levels, key=lambda lv: lv.floor_y)
+    return ([lv for lv in levels if lv.floor_y <= y] or levels[:1])[-1]
+
+
+def plain_floor(house, eye, floor_pixel_heights):
+    """The floor height of a view from a camera at ``eye`` and its source, one rule at a time:
+    the highest walkable floor face whose x–z footprint holds the eye and whose plane passes
+    at most tol.eye_above_floor above it ("room floor"); else the median height of the view's
+    D5 floor pixels; else the area-weighted median top of the faces of the eye's level that
+    are not above it; else the level's floor_y."""
+    x, y, z = eye
+    below = []
+    faces = plain_floor_faces(house)
+    for (a, b, c), _, _ in faces:
+        # inside when on the inner side of all three edges (either winding), edges included
+        sides = [(q[0] - p[0]) * (z - p[2]) - (q[2] - p[2]) * (x - p[0]) for p, q in ((a, b), (b, c), (c, a))]
+        slack = tol.floor_footprint * abs((b[0] - a[0]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[0] - a[0]))
+        if not (all(d >= -slack for d in sides) or all(d <= slack for d in sides)):
+            continue
+        n = np.cross(b - a, c - a)
+        height = a[1] - (n[0] * (x - a[0]) + n[2] * (z - a[2])) / n[1]
+        if height <= y + tol.eye_above_floor:
+            below.append(height)
+    if below:
+        return float(max(below)), "room floor"
+    if len(floor_pixel_heights):
+        return float(np.median(floor_pixel_heights)), "view floor pixels"
+    level = plain_level_at(house, y)
+    tops = sorted((max(p[1] for p in corners), 0.5 * np.linalg.norm(np.cross(corners[1] - corners[0],
+                                                                               corners[2] - corners[0])))
+                  for corners, _, lv in faces if lv == level.id)
+    tops = [(top, area) for top, area in tops if top <= y + tol.eye_above_floor]
+    if tops:
+        half, total = 0.5 * sum(area for _, area in tops), 0.0
+        for top, area in tops:
+            total += area
+            if total >= half:
+                return float(top), "level floor"
+    return float(level.floor_y), "level bbox"
 
 
 def toy_views():
@@ -414,8 +487,8 @@ def test_frontal_points_fast_equals_the_plain_version_on_toy_views():
     n = 0
     for house, camera, layers in toy_views():
         frame = gravity_frame(camera)
-        fast, fast_floor = frontal_points_fast(house, camera, layers, frame, CONFIG)
-        plain, plain_floor = plain_frontal_points(house, camera, layers, frame, CONFIG)
+        fast, *fast_floor = frontal_points_fast(house, camera, layers, frame, CONFIG)
+        plain, *plain_floor = plain_frontal_points(house, camera, layers, frame, CONFIG)
         for field in ("objects", "object_room", "object_excluded", "envelope_z", "room_votes"):
             np.testing.assert_array_equal(getattr(fast, field), getattr(plain, field), err_msg=field)
         assert fast.room_ids == plain.room_ids
@@ -476,3 +549,72 @@ def test_overhead_config_is_checked():
         OverheadConfig(resolution=0)
     with pytest.raises(ValueError, match="room_distance_range"):
         OverheadConfig(room_distance_range=(9.0, 1.5))
+
+
+# ------------------------------------------------------- the floor of a view (hard cases)
+
+
+def open_rug_room(covered):
+    """rug_room without its +z wall; a camera outside it (z = 2.8, beyond the floor slab)
+    looks in."""
+    house = rug_room(covered=covered, walls=(0, 1, 2))
+    return house, look_at_camera((0.0, 1.5, 2.8), DOWN_PITCH, width=80, height=60)
+
+
+def floor_cases():
+    """(house, camera, expected floor height, its source) per rule of FLOOR_SOURCES."""
+    house = rug_room()
+    # Over the rug, looking away from the only bare strip of floor: no floor pixel in view.
+    yield "room floor, hidden", house, look_at_camera((0.5, 1.5, 1.0), DOWN_PITCH, width=80, height=60), \
+        0.0, "room floor"
+    two = two_level_house()
+    yield "room floor, upper level", two, look_at_camera((0.5, 4.5, 1.0), DOWN_PITCH, width=80, height=60), \
+        3.0, "room floor"
+    # Outside the floor, seeing a bare strip along the far wall: the median of its pixels
+    # (float32 depths).
+    yield "view floor pixels", *open_rug_room((-2.0, 2.5)), 0.0, "view floor pixels"
+    # Outside the floor, which the rug hides entirely: the tops of the level's floors.
+    yield "level floor", *open_rug_room((-2.5, 2.5)), 0.0, "level floor"
+    # No floor at all: the level's floor_y, the bottom of the slab.
+    house, camera = open_rug_room((-2.5, 2.5))
+    next(i for i in house.instances if i.name == "r0_floor").category = 20
+    yield "level bbox", house, camera, -0.1, "level bbox"
+
+
+@pytest.mark.parametrize("case", [c[0] for c in floor_cases()])
+def test_the_floor_of_a_view_is_the_top_of_the_camera_rooms_floor(case):
+    _, house, camera, expected, source = next(c for c in floor_cases() if c[0] == case)
+    tracer = HouseTracer(house)
+    layers = frontal_layers(house, camera, tracer)
+    frame = gravity_frame(camera)
+    seen = (layers.envelope_category == 2).any()
+    assert seen == (case in ("room floor, upper level", "view floor pixels"))
+    points, floor_y, floor_source = frontal_points_fast(house, camera, layers, frame, CONFIG)
+    plain, *plain_floor = plain_frontal_points(house, camera, layers, frame, CONFIG)
+    assert [floor_y, floor_source] == plain_floor
+    assert floor_source == source
+    if source == "view floor pixels":
+        assert floor_y == pytest.approx(expected, abs=1e-5)
+    else:
+        assert floor_y == expected
+    if source == "level bbox":
+        assert floor_y == level_floor_y(house, camera.position[1])
+    over = overhead_camera(house, camera, layers, OverheadConfig(resolution=64))
+    assert (over.floor_y, over.floor_source) == (floor_y, floor_source)
+    assert over.params[2] == over.cam_to_world[1, 3] - floor_y
+
+
+def test_overhead_heights_start_at_the_floor_under_a_rug():
+    # Before, a view whose floor the rug hides took the level's slab bottom: every height 0.1 m
+    # too high. The table top is 0.75 m above the floor.
+    _, house, camera, _, _ = next(floor_cases())
+    tracer = HouseTracer(house)
+    layers = frontal_layers(house, camera, tracer)
+    assert not (layers.envelope_category == 2).any()
+    config = OverheadConfig(resolution=64)
+    over = overhead_camera(house, camera, layers, config)
+    truth = overhead_truth(house, over, tracer, config)
+    table = next(i.id for i in house.instances if i.name == "r0_table")
+    on_table = truth.layers.instance[0] == table
+    assert on_table.sum() > 20
+    np.testing.assert_allclose(truth.height[on_table], 0.75, atol=1e-5)

@@ -66,8 +66,7 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
             cameras, report = sample_cameras(house, config.views_per_house, _house_rng(config.seed, source.id),
                                              config.sampler, WORKER.tracer_of(house))
             ids = list(range(len(cameras)))
-            info = {"source": "sampled", "requested": report.requested, "accepted": report.accepted,
-                    "candidates": report.candidates, "rejected": dict(report.rejected)}
+            info = {"source": "sampled", **report.to_dict()}
         record["cameras"] = info
         if not cameras:
             raise SceneforgeError(f"no valid camera ({_no_camera_reason(info)})")
