@@ -329,7 +329,7 @@ class _Reader:
         self.info: dict[str, tuple[str, str]] = {}
         self.pieces: list[_Piece] = []
         self.openings: list[_Opening] = []
-        self._models: dict[str, Mesh | str] = {}  # jid → model, or the loss reason
+        self._models: dict[str, Mesh | str] = {}  # jid → model, or BAD_MODEL
         self._materials: dict[str, tuple[Material, np.ndarray | None]] = {}
 
     def error(self, problem: str, file: Path | None = None) -> HouseError:
@@ -385,12 +385,10 @@ class _Reader:
             raise self.error(f"cannot read 3D-FUTURE model info: {e}", info_path) from None
 
     def model(self, jid: str) -> Mesh | str:
-        """The 3D-FUTURE model ``jid`` (its texture.png as texture), or why there is none."""
+        """The 3D-FUTURE model ``jid`` (its texture.png as texture), or :data:`BAD_MODEL` when
+        its file cannot be read (the first time, with a warning naming the file)."""
         if jid not in self._models:
             file = self.future / jid / "raw_model.obj"
-            if not file.is_file():
-                self._models[jid] = NO_MODEL
-                return NO_MODEL
             try:
                 mesh = read_obj(file)
             except (OSError, ValueError) as e:
@@ -472,6 +470,9 @@ class _Reader:
             self.house.count_loss(UNRELEASED)
             return
         jid = str(entry.get("jid") or "")
+        if not (self.future / jid / "raw_model.obj").is_file():  # before its category, like validity
+            self.house.count_loss(NO_MODEL)
+            return
         fine, coarse = self.info.get(jid, ("", ""))
         cat = self.category([fine, *title_names(entry.get("title")), entry.get("category"), coarse], "furniture")
         if cat is None:
@@ -574,12 +575,13 @@ class _Reader:
                 y = float(inst.vertices[:, 1].min())
                 floors[inst.room_id] = min(y, floors.get(inst.room_id, y))
         house_floor = min(floors.values(), default=0.0)
-        kept: list[_Opening] = []
+        kept: list[int] = []
         # a Door/Window names its opening better than a Hole/Pocket on the same one
-        for op in sorted(self.openings, key=lambda o: o.kind is None):
-            if not any(np.abs(op.corners - k.corners).max() <= SAME_OPENING for k in kept):
-                kept.append(op)
-        for op in sorted(kept, key=self.openings.index):
+        for k in sorted(range(len(self.openings)), key=lambda k: self.openings[k].kind is None):
+            corners = self.openings[k].corners
+            if not any(np.abs(corners - self.openings[j].corners).max() <= SAME_OPENING for j in kept):
+                kept.append(k)
+        for op in (self.openings[k] for k in sorted(kept)):
             kind = op.kind
             if kind is None:
                 sill = op.corners[:, 1].min() - floors.get(op.room_id, house_floor)
