@@ -256,3 +256,12 @@ def test_bad_mesh_arrays_skip_that_mesh_with_a_warning(tmp_path):
     house = load(path)
     assert len(house.instances) == 1 and house.losses == {front3d.BAD_PIECE: 1}
     assert house.warnings[0].startswith("mesh 'm1': 'xyz' and 'faces' must be flat lists of 3k numbers")
+
+
+def test_count_loss_keeps_one_running_line_per_reason():
+    house = House(id="h", instances=[], warnings=["an earlier repair"])
+    house.count_loss("pieces skipped")
+    house.count_loss("children dangling", 3)
+    house.count_loss("pieces skipped", 2)
+    assert house.losses == {"pieces skipped": 3, "children dangling": 3}
+    assert house.warnings == ["an earlier repair", "pieces skipped: 3", "children dangling: 3"]
