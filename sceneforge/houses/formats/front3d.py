@@ -230,7 +230,10 @@ def opening_rectangle(vertices, faces) -> np.ndarray | None:
     _, axes2 = np.linalg.eigh(xz.T @ xz)
     axes = [np.array([a[0], 0.0, a[1]]) for a in axes2.T]
     spread = [np.ptp(used @ a) for a in axes]
-    through, along = (axes[0], axes[1]) if spread[0] <= spread[1] else (axes[1], axes[0])
+    along = axes[1] if spread[0] <= spread[1] else axes[0]
+    # eigenvectors come with either sign: fix one, so that the corners do not depend on LAPACK
+    along = along if (round(along[0], 9), round(along[2], 9)) > (0.0, 0.0) else -along
+    through = np.array([-along[2], 0.0, along[0]])
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     area = np.linalg.norm(n, axis=1).sum()
     if area <= 0 or np.abs(n @ through).sum() > JAMB_FACING * area:
