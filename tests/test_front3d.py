@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from PIL import Image
 
 from sceneforge.errors import HouseError
 from sceneforge.houses import House, LoadOptions, Material, Room, discover, load
+from sceneforge.houses.formats import front3d
 from sceneforge.testing.front3d import write_house
 
 from .conftest import assert_same_geometry, box_instance
@@ -113,15 +115,16 @@ S = math.sin(math.pi / 4)
 C = math.cos(math.pi / 4)
 
 
-def _scene(tmp_path: Path, *, furniture, children, meshes=(), info=None, models=("m-chair",)) -> Path:
-    """A 3D-FRONT root: ``models`` get MODEL as raw_model.obj; one room holds ``children``."""
+def _scene(tmp_path: Path, *, furniture, children, meshes=(), info=(), models=("m-chair",)) -> Path:
+    """A 3D-FRONT root: ``models`` get MODEL as raw_model.obj, ``info`` is model_info.json
+    (None: none); one room holds ``children``."""
     future = tmp_path / "3D-FUTURE-model"
     for jid in models:
         (future / jid).mkdir(parents=True)
         (future / jid / "raw_model.obj").write_text(_obj(MODEL))
     future.mkdir(exist_ok=True)
     if info is not None:
-        (future / "model_info.json").write_text(json.dumps(info))
+        (future / "model_info.json").write_text(json.dumps(list(info)))
     doc = {"uid": "scene1", "furniture": furniture, "mesh": list(meshes), "material": [],
            "scene": {"room": [{"type": "Bedroom", "instanceid": "Bedroom-7", "children": children}]}}
     path = tmp_path / "3D-FRONT" / "scene1.json"
@@ -130,6 +133,7 @@ def _scene(tmp_path: Path, *, furniture, children, meshes=(), info=None, models=
     return path
 
 
+# the title names the class before the entry's coarser category (model_info has no m-chair)
 CHAIR = {"uid": "u-chair", "jid": "m-chair", "title": "chair", "category": "Dining Chair", "valid": True}
 
 
@@ -146,7 +150,7 @@ def test_quaternion_is_xyzw_and_placement_is_pos_plus_rotated_scaled(tmp_path):
     np.testing.assert_allclose(house.instances[1].vertices, v @ rx.T, atol=1e-12)
     assert [_volume(i) for i in house.instances] == pytest.approx([2.0, 1.0])
     assert [(i.category_name, i.label, i.room_id) for i in house.instances] == [
-        ("chair", "Dining Chair", "Bedroom-7")] * 2
+        ("chair", "chair", "Bedroom-7")] * 2
 
 
 def test_mirroring_scale_flips_winding(tmp_path):
@@ -156,33 +160,35 @@ def test_mirroring_scale_flips_winding(tmp_path):
     assert _volume(inst) == pytest.approx(1.0)
 
 
-def test_missing_model_warns_and_skips_that_piece(tmp_path):
-    ghost = {"uid": "u-ghost", "jid": "m-ghost", "category": "Sofa"}
+def test_missing_model_is_counted_and_skips_that_piece(tmp_path):
+    ghost = {"uid": "u-ghost", "jid": "m-ghost", "category": "Sofa", "valid": True}
     path = _scene(tmp_path, furniture=[CHAIR, ghost],
                   children=[_child("u-ghost", 0), _child("u-chair", 1), _child("u-ghost", 2)])
     house = load(path)
-    assert [i.label for i in house.instances] == ["Dining Chair"]
-    missing = tmp_path / "3D-FUTURE-model" / "m-ghost" / "raw_model.obj"
-    assert house.warnings == [f"furniture model m-ghost: {missing} is missing, skipped"]
+    assert [i.label for i in house.instances] == ["chair"]
+    assert house.losses == {front3d.NO_MODEL: 2}
+    assert house.warnings == [f"{front3d.NO_MODEL}: 2"]
 
 
 def test_category_sources_drop_and_invalid(tmp_path):
+    ok = {"valid": True}
     furniture = [
-        {"uid": "a", "jid": "m-a"},  # no category: model_info's category
-        {"uid": "b", "jid": "m-b", "category": "  double   BED "},  # spacing and case do not matter
-        {"uid": "c", "jid": "m-c", "title": "Desk"},  # neither: the title
-        {"uid": "d", "jid": "m-d", "category": "Plants"},  # dropped
+        {"uid": "a", "jid": "m-a", **ok},  # no category: model_info's category
+        {"uid": "b", "jid": "m-b", "category": "  double   BED ", **ok},  # spacing and case do not matter
+        {"uid": "c", "jid": "m-c", "title": "Desk", **ok},  # neither: the title
+        {"uid": "d", "jid": "m-d", "category": "Plants", **ok},  # dropped
         {"uid": "e", "jid": "m-e", "category": "Sofa", "valid": False},  # unreleased
-        {"uid": "f", "jid": "m-f"},  # model_info: empty category, super-category decides
+        {"uid": "f", "jid": "m-f", **ok},  # model_info: empty category, super-category decides
+        {"uid": "g", "jid": "m-g", "category": "Sofa"},  # no 'valid': unreleased too
     ]
     info = [{"model_id": "m-a", "category": "Nightstand", "super-category": "Cabinet/Shelf/Desk"},
             {"model_id": "m-f", "category": "", "super-category": "Others"}]
-    path = _scene(tmp_path, furniture=furniture, info=info, models=["m-a", "m-b", "m-c", "m-d", "m-e", "m-f"],
-                  children=[_child(u, k) for k, u in enumerate("abcdef")])
+    path = _scene(tmp_path, furniture=furniture, info=info, models=["m-a", "m-b", "m-c", "m-d", "m-e", "m-f", "m-g"],
+                  children=[_child(u, k) for k, u in enumerate("abcdefg")])
     house = load(path)
     assert [(i.label, i.category_name) for i in house.instances] == [
         ("Nightstand", "night_stand"), ("double   BED", "bed"), ("Desk", "desk"), ("Others", "otherprop")]
-    assert house.warnings == ["1 placed furniture pieces are marked invalid (unreleased), skipped"]
+    assert house.losses == {front3d.DROPPED: 1, front3d.UNRELEASED: 2}
 
 
 def test_architecture_meshes(tmp_path):
@@ -200,6 +206,7 @@ def test_architecture_meshes(tmp_path):
     Image.new("RGB", (2, 2)).save(tmp_path / "3D-FRONT-texture" / "tex-1" / "texture.png")
     path.write_text(json.dumps(doc))
     house = load(path)
+    assert house.losses == {front3d.DANGLING: 1}  # light-9
     assert [(i.category_name, i.label, i.envelope, i.room_id) for i in house.instances] == [
         ("floor", "Floor", True, "Bedroom-7"), ("wall", "WallInner", True, "Bedroom-7"),
         ("door", "Door", True, "Bedroom-7")]
@@ -211,7 +218,7 @@ def test_architecture_meshes(tmp_path):
 
 
 def test_unknown_category_void_or_strict_error(tmp_path):
-    odd = {"uid": "u-odd", "jid": "m-chair", "category": "Spaceship"}
+    odd = {"uid": "u-odd", "jid": "m-chair", "category": "Spaceship", "valid": True}
     path = _scene(tmp_path, furniture=[odd], children=[_child("u-odd", 0)])
     house = load(path)
     assert (house.instances[0].category, house.instances[0].label) == (0, "Spaceship")
@@ -233,14 +240,28 @@ def test_future_dir_option_and_missing_model_folder(tmp_path):
     ({"rot": [0, 0, 0, 0]}, "non-zero quaternion"),
     ({"pos": [1, 2]}, r"child 'furniture/0': pos/rot/scale must be"),
 ])
-def test_bad_placement_raises(tmp_path, child, message):
-    path = _scene(tmp_path, furniture=[CHAIR], children=[{**_child("u-chair", 0), **child}])
-    with pytest.raises(HouseError, match=message):
-        load(path)
+def test_bad_placement_skips_that_piece_with_a_warning(tmp_path, child, message):
+    path = _scene(tmp_path, furniture=[CHAIR], children=[{**_child("u-chair", 0), **child}, _child("u-chair", 1)])
+    house = load(path)
+    assert [i.name for i in house.instances] == ["chair#furniture/1"]
+    assert re.search(message, house.warnings[0]) and house.losses == {front3d.BAD_PIECE: 1}
+    with pytest.raises(HouseError, match=message):  # nothing else left: the house fails, saying why
+        load(_scene(tmp_path / "alone", furniture=[CHAIR], children=[{**_child("u-chair", 0), **child}]))
 
 
-def test_bad_mesh_arrays_raise(tmp_path):
+def test_bad_mesh_arrays_skip_that_mesh_with_a_warning(tmp_path):
     meshes = [{"uid": "m1", "type": "Floor", "xyz": [0, 0, 0, 1], "faces": [0, 1, 2]}]
-    path = _scene(tmp_path, furniture=[], meshes=meshes, models=(), children=[{"ref": "m1", "instanceid": "mesh/1"}])
-    with pytest.raises(HouseError, match=r"mesh 'm1': 'xyz' and 'faces' must be flat lists"):
-        load(path)
+    path = _scene(tmp_path, furniture=[CHAIR], meshes=meshes,
+                  children=[{"ref": "m1", "instanceid": "mesh/1"}, _child("u-chair", 0)])
+    house = load(path)
+    assert len(house.instances) == 1 and house.losses == {front3d.BAD_PIECE: 1}
+    assert house.warnings[0].startswith("mesh 'm1': 'xyz' and 'faces' must be flat lists of 3k numbers")
+
+
+def test_count_loss_keeps_one_running_line_per_reason():
+    house = House(id="h", instances=[], warnings=["an earlier repair"])
+    house.count_loss("pieces skipped")
+    house.count_loss("children dangling", 3)
+    house.count_loss("pieces skipped", 2)
+    assert house.losses == {"pieces skipped": 3, "children dangling": 3}
+    assert house.warnings == ["an earlier repair", "pieces skipped: 3", "children dangling: 3"]

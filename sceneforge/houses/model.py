@@ -86,7 +86,9 @@ class House:
     """A house: instances, rooms and levels, plus where it came from.
 
     ``warnings`` lists the problems a loader repaired or tolerated (dropped degenerate
-    faces, unknown categories mapped to void, ...), for ``sceneforge houses inspect``.
+    faces, unknown categories mapped to void, ...), for ``sceneforge houses inspect`` and the
+    store's provenance. ``losses`` counts, by reason, the pieces a loader left out or flagged
+    (:meth:`count_loss`); each reason also has one line in ``warnings``.
     """
 
     id: str
@@ -96,6 +98,18 @@ class House:
     source_format: str = "sceneforge"
     source_path: str | None = None
     warnings: list[str] = field(default_factory=list)
+    losses: dict[str, int] = field(default_factory=dict)
+
+    def count_loss(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` more pieces left out (or flagged) for ``reason``; the line
+        ``"<reason>: <total>"`` in ``warnings`` says the running total."""
+        old = self.losses.get(reason)
+        self.losses[reason] = (old or 0) + n
+        line = f"{reason}: {self.losses[reason]}"
+        if old is None:
+            self.warnings.append(line)
+        else:
+            self.warnings[self.warnings.index(f"{reason}: {old}")] = line
 
     @property
     def triangle_count(self) -> int:
