@@ -19,6 +19,10 @@ from ..errors import HouseError
 from .model import House
 
 
+#: how the warning for a name mapped to void starts (``houses inspect`` lists those names itself)
+UNKNOWN = "unknown category"
+
+
 def data_file(name: str) -> Path:
     """Path of a data file shipped inside the package (``sceneforge/data``)."""
     return Path(__file__).resolve().parents[1] / "data" / name
@@ -36,7 +40,7 @@ def resolve(
         return category
     if strict:
         raise HouseError(house.id, file, f"unknown category {label!r} (--strict)")
-    msg = f"unknown category {label!r} mapped to void"
+    msg = f"{UNKNOWN} {label!r} mapped to void"
     if msg not in house.warnings:
         house.warnings.append(msg)
     return 0
