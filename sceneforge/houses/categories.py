@@ -18,7 +18,6 @@ from pathlib import Path
 from ..errors import HouseError
 from .model import House
 
-
 #: how the warning for a name mapped to void starts (``houses inspect`` lists those names itself)
 UNKNOWN = "unknown category"
 
