@@ -6,15 +6,16 @@ with its ceiling, ``room_skeleton``, ``Shell``). A name map sends such names to 
 ``shell`` target (:mod:`sceneforge.houses.names`) and :func:`split_shell` decides per face:
 
 - a face is **horizontal** when its normal is within ``acos(horizontal_cos)`` of ±Y;
-  horizontal faces are grouped by height (gaps of more than ``height_gap`` separate groups);
+  horizontal faces are grouped by the way they face (up or down) and by height (gaps of
+  more than ``height_gap`` separate groups);
 - a group is a **floor or ceiling surface** only when it is room-sized: its footprint's
   bounding box is at least ``min_side`` on both sides and it covers at least ``min_cover``
   of the mesh's own footprint box (sampled on a ``grid`` × ``grid`` lattice of points).
   Window sills, the tops of thick walls and lintels stay wall;
 - such a group is a **floor** when at least ``room_height`` of the mesh rises above it and
   a **ceiling** when at least ``room_height`` of the mesh lies below it; a group that could
-  be both (the slab between two storeys) is a floor when its normals point up, a ceiling
-  when they point down;
+  be both (the slab between two storeys) is a floor when it faces up, a ceiling when it
+  faces down;
 - every other face is **wall**.
 
 Normals may point into the rooms or out of them: only the slab between two storeys needs
@@ -68,24 +69,26 @@ def split_shell(
     steps = (np.arange(grid) + 0.5) / grid
     lattice = np.stack(np.meshgrid(lo[0] + steps * (hi[0] - lo[0]), lo[1] + steps * (hi[1] - lo[1]),
                                    indexing="ij"), -1).reshape(-1, 2)
-    height = tri[horizontal, :, 1].mean(1)
-    order = horizontal[np.argsort(height, kind="stable")]
-    sorted_h = tri[order, :, 1].mean(1)
-    breaks = np.flatnonzero(np.diff(sorted_h) > height_gap) + 1
-    for group in np.split(order, breaks):
-        xz = tri[group][:, :, [0, 2]]
-        extent = xz.reshape(-1, 2).max(0) - xz.reshape(-1, 2).min(0)
-        if extent.min() < min_side:
-            continue
-        if points_in_triangles(lattice, xz).mean() < min_cover:
-            continue
-        h = float(tri[group, :, 1].mean())
-        can_floor, can_ceiling = h <= top - room_height, h >= bottom + room_height
-        if can_floor and can_ceiling:
-            up = float((ny[group] * length[group]).sum()) > 0
-            can_floor, can_ceiling = up, not up
-        if can_floor:
-            part[group] = FLOOR
-        elif can_ceiling:
-            part[group] = CEILING
+    for facing in (horizontal[ny[horizontal] > 0], horizontal[ny[horizontal] < 0]):
+        height = tri[facing, :, 1].mean(1)
+        order = facing[np.argsort(height, kind="stable")]
+        breaks = np.flatnonzero(np.diff(np.sort(height, kind="stable")) > height_gap) + 1
+        for group in np.split(order, breaks):
+            part[group] = _group_part(tri[group], bool(ny[group[0]] > 0), lattice, bottom, top,
+                                      min_side, min_cover, room_height)
     return part
+
+
+def _group_part(tri: np.ndarray, up: bool, lattice: np.ndarray, bottom: float, top: float,
+                min_side: float, min_cover: float, room_height: float) -> int:
+    """The part of one group of horizontal faces facing the same way at one height:
+    tri (t, 3, 3) float, lattice (g, 2) float the points sampling the mesh's footprint."""
+    xz = tri[:, :, [0, 2]]
+    extent = xz.reshape(-1, 2).max(0) - xz.reshape(-1, 2).min(0)
+    if extent.min() < min_side or points_in_triangles(lattice, xz).mean() < min_cover:
+        return WALL
+    h = float(tri[..., 1].mean())
+    can_floor, can_ceiling = h <= top - room_height, h >= bottom + room_height
+    if can_floor and can_ceiling:
+        return FLOOR if up else CEILING
+    return FLOOR if can_floor else CEILING if can_ceiling else WALL
