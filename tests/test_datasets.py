@@ -149,7 +149,7 @@ def test_drop_removes_instances(tmp_path):
     mapping.write_text(json.dumps([["^blob$", "drop"], ["^chair$", "drop"]]))
     h = load(path, LoadOptions(name_map=str(mapping)))
     assert [i.name for i in h.instances] == [n for n in names if n not in ("Blob", "Chair")]
-    assert any("'Blob' dropped by rule '^blob$' of drop.json #1" in w for w in h.warnings)
+    assert any("'Blob' dropped by drop.json #1 ('^blob$')" in w for w in h.warnings)
 
 
 def test_a_bad_rule_is_one_clear_error(tmp_path):

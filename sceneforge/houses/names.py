@@ -55,7 +55,9 @@ class Rule:
     source: str
 
     def describe(self) -> str:
-        return f"rule {self.pattern.pattern!r} of {self.source}"
+        """``name_patterns.json #2 ('plant|leaves|leaf|bran…')``"""
+        text = self.pattern.pattern
+        return f"{self.source} ({(text if len(text) <= 24 else text[:23] + '…')!r})"
 
 
 @dataclass(frozen=True)
