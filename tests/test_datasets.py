@@ -230,6 +230,14 @@ def test_two_storey_shell_slab_goes_by_its_normal():
     assert set(part[np.abs(y) < 1e-9]) == {FLOOR} and set(part[np.abs(y - 5) < 1e-9]) == {CEILING}
 
 
+def test_a_shell_without_floor_keeps_its_ceiling():
+    v, f = _box_shell()
+    f = f[2:]  # the floor quad left out: no face faces up but the sill
+    part = split_shell(v, f)
+    area = trimesh.Trimesh(v, f, process=False).area_faces
+    assert area[part == CEILING].sum() == pytest.approx(20.0) and not (part == FLOOR).any()
+
+
 def test_a_thick_wall_box_stays_wall():
     wall = trimesh.creation.box(bounds=[(0, 0, 0), (4, 2.7, 0.2)])
     assert (split_shell(wall.vertices, wall.faces) == WALL).all()

@@ -52,7 +52,7 @@ class LoadOptions:
     scale: float = 1.0
     #: generic meshes: the source's up axis ("y" or "z"); z-up is converted to +Y up
     up_axis: str = "y"
-    #: generic meshes: JSON name-pattern map replacing the bundled one
+    #: generic meshes: JSON name map whose rules are tried before the bundled ones (targets: NYU40 names, drop, shell)
     name_map: str | None = None
     #: 3D-FRONT: folder of 3D-FUTURE models (default: found beside the scene files)
     future_dir: str | None = None

@@ -70,6 +70,8 @@ def split_shell(
     lattice = np.stack(np.meshgrid(lo[0] + steps * (hi[0] - lo[0]), lo[1] + steps * (hi[1] - lo[1]),
                                    indexing="ij"), -1).reshape(-1, 2)
     for facing in (horizontal[ny[horizontal] > 0], horizontal[ny[horizontal] < 0]):
+        if not len(facing):
+            continue
         height = tri[facing, :, 1].mean(1)
         order = facing[np.argsort(height, kind="stable")]
         breaks = np.flatnonzero(np.diff(np.sort(height, kind="stable")) > height_gap) + 1
