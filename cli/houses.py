@@ -23,8 +23,10 @@ def houses():
               help="Write a top-down PNG per house into this folder (<house id>.png).")
 def inspect(path, config, preview_dir):
     """Print a table per house in PATH: instances per NYU40 class, triangles, rooms,
-    bounding box and problems found. Houses are read as `sceneforge render` reads them
-    (the `houses` section of --config).
+    bounding box, the names that fell to void (with their share of the triangles) and
+    problems found (no floor, no walls, no rooms, loader warnings). Houses are read as
+    `sceneforge render` reads them (the `houses` section of --config); an unreadable
+    house is named with its parser's message.
 
     PATH is one house, a folder of houses in any supported format, a SUNCG root, a
     3D-FRONT root, or `bundled:toy` for the toy houses shipped with sceneforge. A house that fails to load is reported in red and the others go on;
@@ -55,6 +57,10 @@ def inspect(path, config, preview_dir):
         table.add_section()
         table.add_row("total", str(s.instances), f"{s.triangles:,}")
         out.print(table)
+        if s.void_names:
+            out.print("names that fell to void:")
+            for label, n, t, share in s.void_names:
+                out.print(f"  {label!r}  {n} instances  {t:,} triangles  {100 * share:.1f} %")
         out.print(f"rooms {s.rooms}  levels {s.levels}  bounds "
                   f"[{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}] m")
         if s.problems:

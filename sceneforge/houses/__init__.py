@@ -4,11 +4,23 @@ Every command that takes ``HOUSES`` goes through :func:`discover`, which turns a
 (one house file, a house folder, a folder of houses in any format, a SUNCG root or a
 3D-FRONT root) into :class:`HouseSource` entries, and :func:`load`, which reads one.
 Loading is lazy so that one broken house fails alone.
+
+House ids (:func:`house_ids`, the README's "Your own data"):
+
+1. a house file's id is its name without the suffix (``kitchen.glb`` → ``kitchen``);
+   sceneforge and SUNCG houses are named by their folder, 3D-FRONT scenes by their file;
+2. where a file's name says nothing — it is generic (:data:`GENERIC_STEMS`: ``scene.gltf``,
+   ``house.obj``, ``model.ply``, ...) or several houses of the scan share it — the id is the
+   name of the folder holding it (``a/scene.gltf`` → ``a``);
+3. where folder names are shared too, the folder's path under the folder scanned
+   (``set1/a/scene.gltf`` → ``set1/a``);
+4. houses whose ids still collide fail, each naming the other files; the others go on.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..errors import HouseError, SceneforgeError, UnknownFormatError
@@ -17,8 +29,15 @@ from .model import House, Instance, Level, Material, Room, make_instance
 
 __all__ = [
     "BUNDLED_TOY", "FORMATS", "House", "HouseSource", "Instance", "Level", "LoadOptions", "Material", "Room",
-    "discover", "iter_houses", "load", "make_instance",
+    "discover", "house_ids", "iter_houses", "load", "make_instance",
 ]
+
+#: file names (without suffix, any case) that say nothing about the house: such a house is
+#: named after its folder
+GENERIC_STEMS = frozenset({
+    "scene", "house", "model", "mesh", "untitled", "export", "output", "main", "default",
+    "textured", "textured_output", "scene_mesh", "mesh_textured",
+})
 
 
 @dataclass(frozen=True)
@@ -33,7 +52,7 @@ class LoadOptions:
     scale: float = 1.0
     #: generic meshes: the source's up axis ("y" or "z"); z-up is converted to +Y up
     up_axis: str = "y"
-    #: generic meshes: JSON name-pattern map replacing the bundled one
+    #: generic meshes: JSON name map whose rules are tried before the bundled ones (targets: NYU40 names, drop, shell)
     name_map: str | None = None
     #: 3D-FRONT: folder of 3D-FUTURE models (default: found beside the scene files)
     future_dir: str | None = None
@@ -72,11 +91,37 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
             f"{path}: no house found (supported: sceneforge house.json, glTF/GLB, OBJ, PLY, "
             "SUNCG root or house, 3D-FRONT root or scene JSON)"
         )
-    ids = [s.id for s in found]
-    dupes = sorted({i for i in ids if ids.count(i) > 1})
-    if dupes:
-        raise SceneforgeError(f"{path}: several houses share the id(s) {', '.join(dupes)}")
-    return found
+    return house_ids(found, path)
+
+
+def house_ids(sources: list[HouseSource], scanned: Path) -> list[HouseSource]:
+    """``sources`` (found under ``scanned``) with the ids of the module doc's rule; houses
+    whose ids collide get a :attr:`HouseSource.problem` naming the other files."""
+    base = scanned if scanned.is_dir() else scanned.parent
+    named_by_file = [s.path.is_file() and s.id == s.path.stem for s in sources]
+    stems = Counter(s.id for s, by_file in zip(sources, named_by_file) if by_file)
+    ids, by_folder = [], []
+    for s, by_file in zip(sources, named_by_file):
+        generic = by_file and (s.id.lower() in GENERIC_STEMS or stems[s.id] > 1)
+        ids.append(s.path.parent.name if generic else s.id)
+        by_folder.append(generic or not by_file)
+    counts = Counter(ids)
+    for k, s in enumerate(sources):
+        folder = s.path.parent if named_by_file[k] else s.path if s.path.is_dir() else s.path.parent
+        if by_folder[k] and counts[ids[k]] > 1 and folder != base and folder.is_relative_to(base):
+            ids[k] = folder.relative_to(base).as_posix()
+    files: dict[str, list[Path]] = {}
+    for i, s in zip(ids, sources):
+        files.setdefault(i, []).append(s.path)
+    out = []
+    for i, s in zip(ids, sources):
+        problem = s.problem
+        if len(files[i]) > 1:
+            others = ", ".join(str(f) for f in files[i] if f != s.path)
+            problem = (f"id {i!r} is also the id of {others}: rename one of the files or folders, "
+                       "or read them separately")
+        out.append(replace(s, id=i, problem=problem))
+    return out
 
 
 def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -> House:
@@ -87,15 +132,23 @@ def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -
         if len(found) != 1:
             raise SceneforgeError(f"{source}: holds {len(found)} houses, expected one")
         source = found[0]
+    if source.problem is not None:
+        raise HouseError(source.id, source.path, source.problem)
     fmt = REGISTRY.get(source.format)
     if fmt is None:
         raise UnknownFormatError(f"unknown format {source.format!r}")
     try:
-        return fmt.load(source, options)
+        house = fmt.load(source, options)
+    except HouseError as e:
+        if e.house == source.id:
+            raise
+        raise HouseError(source.id, e.file, e.problem) from e  # the id discovery gave it
     except SceneforgeError:
         raise
     except (OSError, ValueError, KeyError, IndexError, TypeError) as e:
         raise HouseError(source.id, source.path, f"{type(e).__name__}: {e}") from e
+    house.id = source.id
+    return house
 
 
 def iter_houses(path: str | Path, options: LoadOptions | None = None):

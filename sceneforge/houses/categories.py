@@ -2,8 +2,9 @@
 
 Two kinds of map, both plain JSON files a user can copy and edit:
 
-- a **name-pattern map** for generic scenes (glTF/OBJ/PLY): ordered ``[regex, nyu40 name]``
-  rules matched against node/object names, first match wins;
+- a **name map** for generic scenes (glTF/OBJ/PLY): ordered ``[regex, target]`` rules
+  matched against node/object names, the user's before the bundled ones
+  (:mod:`sceneforge.houses.names`);
 - a **category table** for datasets with their own vocabulary (3D-FRONT): exact
   category name → NYU40 name.
 
@@ -12,63 +13,18 @@ Unknown names map to void with a warning on the house, or raise with ``strict``.
 
 from __future__ import annotations
 
-import json
-import re
-from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
-from ..conventions import NYU40_NAMES, nyu40_id
-from ..errors import HouseError, SceneforgeError
+from ..errors import HouseError
 from .model import House
+
+#: how the warning for a name mapped to void starts (``houses inspect`` lists those names itself)
+UNKNOWN = "unknown category"
 
 
 def data_file(name: str) -> Path:
     """Path of a data file shipped inside the package (``sceneforge/data``)."""
     return Path(__file__).resolve().parents[1] / "data" / name
-
-
-@dataclass(frozen=True)
-class PatternMap:
-    """Ordered ``(compiled regex, NYU40 id)`` rules; the first rule that matches wins."""
-
-    rules: tuple[tuple[re.Pattern, int], ...]
-    source: str
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> "PatternMap":
-        path = Path(path)
-        try:
-            raw = json.loads(path.read_text())
-            items = raw["patterns"] if isinstance(raw, dict) else raw
-            rules = []
-            for pattern, name in items:
-                cid = nyu40_id(name)
-                if cid is None:
-                    raise SceneforgeError(
-                        f"{path}: {name!r} is not an NYU40 class name (one of {', '.join(NYU40_NAMES[1:])})"
-                    )
-                rules.append((re.compile(pattern, re.IGNORECASE), cid))
-        except (OSError, ValueError, KeyError, TypeError, re.error) as e:
-            raise SceneforgeError(f"cannot read name-pattern map {path}: {e}") from None
-        return cls(tuple(rules), str(path))
-
-    @classmethod
-    def default(cls) -> "PatternMap":
-        return _default_pattern_map()
-
-    def lookup(self, name: str) -> int | None:
-        """NYU40 id for a node name, or None when no rule matches."""
-        direct = nyu40_id(name)
-        for pattern, cid in self.rules:
-            if pattern.search(name):
-                return cid
-        return direct
-
-
-@lru_cache(maxsize=1)
-def _default_pattern_map() -> PatternMap:
-    return PatternMap.from_file(data_file("name_patterns.json"))
 
 
 def resolve(
@@ -83,7 +39,7 @@ def resolve(
         return category
     if strict:
         raise HouseError(house.id, file, f"unknown category {label!r} (--strict)")
-    msg = f"unknown category {label!r} mapped to void"
+    msg = f"{UNKNOWN} {label!r} mapped to void"
     if msg not in house.warnings:
         house.warnings.append(msg)
     return 0

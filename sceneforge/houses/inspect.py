@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import NYU40_IDS, NYU40_NAMES
+from .categories import UNKNOWN
 from .model import House
 
 
@@ -17,7 +18,11 @@ class HouseSummary:
     """Counts and checks of one loaded house.
 
     categories : NYU40 name → (instances, triangles), most instances first
+    void_names : (label, instances, triangles, share of the house's triangles) of every
+                 source name (label) whose instances are void, most triangles first
     bounds     : (2, 3) float64 min / max corner, metres
+    problems   : what to look at before rendering: loader warnings (but the void names,
+                 listed in ``void_names``), missing floors, walls or rooms, homeless instances
     """
 
     id: str
@@ -28,6 +33,7 @@ class HouseSummary:
     rooms: int
     levels: int
     categories: tuple[tuple[str, int, int], ...]
+    void_names: tuple[tuple[str, int, int, float], ...]
     bounds: np.ndarray
     problems: tuple[str, ...]
 
@@ -41,10 +47,26 @@ def summarize(house: House) -> HouseSummary:
     cats = tuple(
         (NYU40_NAMES[c], n, tris[c]) for c, n in sorted(inst.items(), key=lambda kv: (-kv[1], kv[0]))
     )
-    problems = list(house.warnings)
+    void: dict[str, list[int]] = {}
+    for i in house.instances:
+        if i.category == 0:
+            entry = void.setdefault(i.label or i.name, [0, 0])
+            entry[0] += 1
+            entry[1] += len(i.faces)
+    total = max(house.triangle_count, 1)
+    void_names = tuple((label, n, t, t / total)
+                       for label, (n, t) in sorted(void.items(), key=lambda kv: (-kv[1][1], kv[0])))
+    problems = [w for w in house.warnings if not w.startswith(UNKNOWN)]
     for needed in ("floor", "wall"):
         if NYU40_IDS[needed] not in inst:
             problems.append(f"no {needed} instance")
+    if not house.rooms:
+        problems.append("no rooms: the overhead camera's majority-room box is always rejected "
+                        "(glTF/OBJ/PLY scenes get their rooms from their floor instances)")
+    if void_names:
+        share = sum(t for _, _, t, _ in void_names) / total
+        problems.append(f"{len(void_names)} names fell to void ({100 * share:.1f} % of the triangles): "
+                        "give them classes with --name-map")
     if house.rooms:
         room_ids = {r.id for r in house.rooms}
         homeless = sum(1 for i in house.instances if i.room_id not in room_ids)
@@ -59,6 +81,7 @@ def summarize(house: House) -> HouseSummary:
         rooms=len(house.rooms),
         levels=len(house.levels),
         categories=cats,
+        void_names=void_names,
         bounds=house.bounds(),
         problems=tuple(problems),
     )

@@ -9,17 +9,18 @@ from pathlib import Path
 from ..errors import SceneforgeError
 from ..houses.formats.generic import SUFFIXES, tagged_name
 from ..houses.formats.meshio import Mesh
-from ..houses.model import House, Instance
+from ..houses.model import House
 from .gltf import write_gltf
 from .obj import write_obj
 from .ply import write_ply
 
 
-def write_house(house: House, path: str | Path) -> Path:
+def write_house(house: House, path: str | Path, names: list[str] | None = None) -> Path:
     """Write ``house`` as ``.gltf``, ``.glb``, ``.obj`` (+ ``.mtl``) or ``.ply`` (by suffix).
 
     Every format keeps instances (one node / ``o`` object / PLY ``instance`` value each),
-    categories (through :func:`tagged_name`) and geometry. glTF and OBJ keep base colours,
+    categories (through :func:`tagged_name`, unless ``names`` gives every instance its name
+    as written: :mod:`sceneforge.testing.scenes`) and geometry. glTF and OBJ keep base colours,
     textures and uv; PLY keeps base colours (as face colours) and uv, not textures. Rooms
     are not kept. glTF stores positions as float32, relative to each instance's centre
     (about 6e-8 × the instance's size of error). Returns ``path``.
@@ -30,7 +31,7 @@ def write_house(house: House, path: str | Path) -> Path:
         raise SceneforgeError(
             f"{path}: cannot write a house as {suffix!r} (use one of {', '.join(SUFFIXES)})")
     path.parent.mkdir(parents=True, exist_ok=True)
-    names = _unique_tagged_names(house.instances)
+    names = _unique([tagged_name(i) for i in house.instances] if names is None else list(names))
     if suffix in (".gltf", ".glb"):
         write_gltf(path, house, names)
     elif suffix == ".obj":
@@ -42,12 +43,11 @@ def write_house(house: House, path: str | Path) -> Path:
     return path
 
 
-def _unique_tagged_names(instances: list[Instance]) -> list[str]:
-    """Tagged names, made unique with ``.2``, ``.3``... (OBJ would merge equal names)."""
+def _unique(names: list[str]) -> list[str]:
+    """Names made unique with ``.2``, ``.3``... (OBJ would merge equal names)."""
     seen: dict[str, int] = {}
     out = []
-    for inst in instances:
-        name = tagged_name(inst)
+    for name in names:
         seen[name] = seen.get(name, 0) + 1
         out.append(name if seen[name] == 1 else f"{name}.{seen[name]}")
     return out

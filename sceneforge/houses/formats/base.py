@@ -17,11 +17,17 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class HouseSource:
-    """A house that :func:`~sceneforge.houses.load` can read: its id, format and path."""
+    """A house that :func:`~sceneforge.houses.load` can read: its id, format and path.
+
+    ``problem`` says why a house that discovery found cannot be read (a ``house.json``
+    that is not JSON, an id two houses share); loading it raises
+    :class:`~sceneforge.errors.HouseError` with that message, so the house fails alone.
+    """
 
     id: str
     format: str
     path: Path
+    problem: str | None = None
 
 
 @dataclass(frozen=True)

@@ -6,10 +6,14 @@ turns its file into meshes (:mod:`~sceneforge.houses.formats.gltf`: one per node
 :mod:`~sceneforge.houses.formats.ply`: one per ``instance`` property value);
 this module makes instances of the meshes and names them:
 
-- The category of an instance comes from its name through a :class:`PatternMap` (the
-  bundled one or ``LoadOptions.name_map``); its ``label`` is the name without
-  Blender-style copy numbers (``Chair.001`` → ``Chair``), so that rules on source labels
-  (fireplace, plant, ...) see the object's kind. Persons and plants are dropped.
+- The category of an instance comes from its name through a
+  :class:`~sceneforge.houses.names.NameMap` (the rules of ``LoadOptions.name_map`` before
+  the bundled ones); its ``label`` is the name without Blender-style copy numbers
+  (``Chair.001`` → ``Chair``), so that rules on source labels (fireplace, plant, ...) see
+  the object's kind. Persons, plants and names sent to ``drop`` are left out; a mesh sent
+  to ``shell`` becomes up to three instances ``<name>/wall``, ``<name>/floor`` and
+  ``<name>/ceiling`` (:func:`~sceneforge.houses.shell.split_shell`).
+- The scene has no rooms: they are derived from its floors (:mod:`sceneforge.houses.rooms`).
 - ``LoadOptions.scale`` and ``up_axis`` take the source's units and axes to metres, +Y up.
 - The three formats (:data:`GLTF`, :data:`OBJ`, :data:`PLY`, as the registry holds them) are
   recognised by their file suffixes (:data:`SUFFIXES`) and all read by :func:`load_house`.
@@ -27,10 +31,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ...conventions import NYU40_NAMES, is_dropped
+from ...conventions import NYU40_IDS, NYU40_NAMES, is_dropped
 from ...errors import HouseError, SceneforgeError
-from ..categories import PatternMap, resolve
+from ..categories import resolve
 from ..model import House, Instance, make_instance
+from ..names import DROP, SHELL, TAG, NameMap
+from ..rooms import derive_rooms
+from ..shell import PARTS, split_shell
 from .base import Format, HouseSource
 from .meshio import Mesh, MeshFileError
 
@@ -45,16 +52,15 @@ SUFFIXES = {".gltf": "gltf", ".glb": "gltf", ".obj": "obj", ".ply": "ply"}
 #: rotation taking a Z-up source to +Y up, right-handed: (x, y, z) → (x, z, -y)
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
-_TAG = re.compile(r"^(" + "|".join(map(re.escape, NYU40_NAMES)) + r")__(?=.)")
 # Blender ".001", "_2", " 3": copies of one object, not different kinds of object.
 _COPY_NUMBER = re.compile(r"(?:[._ -]\d+)+$")
 
 
-def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
-    """Read a glTF/GLB, OBJ or PLY scene as a house (id = file stem, no rooms).
+def load_house(path: str | Path, options: LoadOptions | None = None, house_id: str | None = None) -> House:
+    """Read a glTF/GLB, OBJ or PLY scene as a house (id ``house_id``, default the file stem).
 
     ``options`` is a :class:`sceneforge.houses.LoadOptions`; ``scale``, ``up_axis``,
-    ``name_map`` and ``strict`` apply. Raises :class:`HouseError` naming the house, the
+    ``name_map`` and ``strict`` apply. Rooms and levels are derived from the floors. Raises :class:`HouseError` naming the house, the
     file and the problem for anything unreadable, and :class:`SceneforgeError` for a bad
     option.
     """
@@ -68,7 +74,7 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
     fmt = SUFFIXES.get(path.suffix.lower())
     if fmt is None:
         raise SceneforgeError(f"{path}: not a generic scene (expected one of {', '.join(SUFFIXES)})")
-    builder = _Builder(path, fmt, options)
+    builder = _Builder(path, fmt, options, house_id or path.stem)
     if not path.is_file():
         raise HouseError(builder.house.id, path, "no such file")
     read = {"gltf": read_gltf, "obj": read_objects, "ply": read_ply}[fmt]
@@ -81,7 +87,7 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
         raise HouseError(builder.house.id, e.file or path, e.problem) from None
     if not count:
         raise HouseError(builder.house.id, path, "no faces")
-    return builder.house.check_not_empty()
+    return derive_rooms(builder.house.check_not_empty())
 
 
 def tagged_name(instance: Instance) -> str:
@@ -101,7 +107,7 @@ def _label_of(name: str) -> str:
 
 def _split_name(node_name: str) -> tuple[str, str]:
     """(name, label) of a node/object name, taking off a :func:`tagged_name` tag and label."""
-    tag = _TAG.match(node_name)
+    tag = TAG.match(node_name)
     if tag is None:
         return node_name, _label_of(node_name)
     label, sep, name = node_name[tag.end():].partition("__")
@@ -114,7 +120,7 @@ def _split_name(node_name: str) -> tuple[str, str]:
 class _Builder:
     """Turns the named meshes of one file into instances: options, categories, checks."""
 
-    def __init__(self, path: Path, fmt: str, options: LoadOptions):
+    def __init__(self, path: Path, fmt: str, options: LoadOptions, house_id: str):
         scale, up = options.scale, str(options.up_axis).lower()
         number = isinstance(scale, (int, float)) and not isinstance(scale, bool)
         if not number or not np.isfinite(scale) or scale <= 0:
@@ -123,32 +129,50 @@ class _Builder:
             raise SceneforgeError(f"up_axis must be 'y' or 'z', got {options.up_axis!r}")
         self.path = path
         self.options = options
-        self.patterns = PatternMap.from_file(options.name_map) if options.name_map else PatternMap.default()
+        self.names = NameMap.with_user_rules(options.name_map)
         #: (3, 3) float64 source → world linear map (scale and up axis)
         self.to_world = float(scale) * (Z_UP_TO_Y_UP if up == "z" else np.eye(3))
-        self.house = House(id=path.stem, instances=[], rooms=[], source_format=fmt, source_path=str(path))
+        self.house = House(id=house_id, instances=[], rooms=[], source_format=fmt, source_path=str(path))
 
     def warn(self, message: str) -> None:
         if message not in self.house.warnings:
             self.house.warnings.append(message)
 
     def add(self, mesh: Mesh) -> None:
-        """Add one mesh (in source units and axes) as an instance, unless it is dropped."""
+        """Add one mesh (in source units and axes) as an instance, unless it is dropped; a
+        shell is split into its wall, floor and ceiling instances."""
         clean, label = _split_name(mesh.name)
-        category = self.patterns.lookup(mesh.name)
+        target, rule = self.names.match(mesh.name)
         for other in mesh.aliases:
-            category = self.patterns.lookup(other) if category is None else category
-        if is_dropped(category or 0, label):  # before resolve: plants have no NYU40 class
+            if target is None:
+                target, rule = self.names.match(other)
+        if target == DROP:
+            self.warn(f"instance {clean!r} dropped by {rule.describe()}")
+            return
+        if isinstance(target, int) and is_dropped(target, label) or target is None and is_dropped(0, label):
             self.warn(f"instance {clean!r} ({label}) dropped: persons and plants are not kept")
             return
-        category = resolve(self.house, label, category, strict=self.options.strict, file=self.path)
         v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) @ self.to_world.T
-        make_instance(self.house, name=clean, category=category, label=label, room_id=None,
-                      vertices=v, faces=mesh.faces, file=self.path, material=mesh.material, uv=mesh.uv)
+        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+        if target == SHELL:
+            part = split_shell(v, faces)
+            uv = None if mesh.uv is None or len(mesh.uv) != len(v) else np.asarray(mesh.uv)
+            for k, name in enumerate(PARTS):
+                if (part == k).any():  # each part keeps the vertices its faces use
+                    used, f = np.unique(faces[part == k], return_inverse=True)
+                    self._add(f"{clean}/{name}", NYU40_IDS[name], label, v[used], f.reshape(-1, 3),
+                              mesh, None if uv is None else uv[used])
+            return
+        category = resolve(self.house, label, target, strict=self.options.strict, file=self.path)
+        self._add(clean, category, label, v, faces, mesh, mesh.uv)
+
+    def _add(self, name: str, category: int, label: str, v: np.ndarray, faces: np.ndarray, mesh: Mesh, uv) -> None:
+        make_instance(self.house, name=name, category=category, label=label, room_id=None,
+                      vertices=v, faces=faces, file=self.path, material=mesh.material, uv=uv)
 
 
 def _load(source: HouseSource, options: LoadOptions) -> House:
-    return load_house(source.path, options)
+    return load_house(source.path, options, source.id)
 
 
 def _generic_format(name: str) -> Format:

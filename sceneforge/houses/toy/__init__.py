@@ -24,15 +24,17 @@ platform.
 The modules follow the steps: :mod:`.primitives` (boxes, cylinders, placements),
 :mod:`.furniture` (the builders), :mod:`.planner` (rooms, openings, placing furniture),
 :mod:`.house` (a plan made a :class:`~sceneforge.houses.House`), :mod:`.bundle` (batches
-and the bundled set). Regenerate the bundled houses with
+and the bundled set), :mod:`.hard_cases` (room-sized rugs, two levels and stairs, hidden
+floors and ceilings: :class:`ToyOptions`, off by default). Regenerate the bundled houses with
 ``python -m sceneforge.houses.toy --bundle``.
 """
 
 from .bundle import BUNDLE_COUNT, BUNDLE_SEED, house_seed, toy_house_id, write_bundle, write_toy_houses
+from .hard_cases import ToyOptions
 from .house import ToyHouse, build_toy_house, generate_house
 from .planner import Opening
 
 __all__ = [
-    "BUNDLE_COUNT", "BUNDLE_SEED", "Opening", "ToyHouse", "build_toy_house",
+    "BUNDLE_COUNT", "BUNDLE_SEED", "Opening", "ToyHouse", "ToyOptions", "build_toy_house",
     "generate_house", "house_seed", "toy_house_id", "write_bundle", "write_toy_houses",
 ]

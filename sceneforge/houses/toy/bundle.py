@@ -11,6 +11,7 @@ import numpy as np
 
 from ...errors import SceneforgeError
 from .. import bundled_toy_dir
+from .hard_cases import ToyOptions
 from .house import check_seed, generate_house
 
 #: the bundled houses are ``toy_0_000`` .. ``toy_0_002``
@@ -27,10 +28,12 @@ def toy_house_id(seed: int, index: int) -> str:
     return f"toy_{seed}_{index:03d}"
 
 
-def write_toy_houses(out: str | Path, count: int, seed: int, progress=None) -> list[Path]:
+def write_toy_houses(out: str | Path, count: int, seed: int, progress=None,
+                     options: ToyOptions | None = None) -> list[Path]:
     """Write ``count`` toy houses into ``out/<id>/`` in sceneforge's format; return the folders.
 
-    House ``i`` has id ``toy_<seed>_<i:03d>`` and seed :func:`house_seed` ``(seed, i)``.
+    House ``i`` has id ``toy_<seed>_<i:03d>`` and seed :func:`house_seed` ``(seed, i)``, and
+    the hard cases ``options`` asks for (:class:`~.hard_cases.ToyOptions`; None: none).
     ``progress(house, folder)`` is called after each house is written.
     """
     from ..formats.native import write_house
@@ -40,7 +43,7 @@ def write_toy_houses(out: str | Path, count: int, seed: int, progress=None) -> l
         raise SceneforgeError(f"toy houses: count must be a positive integer, got {count!r}")
     folders = []
     for i in range(count):
-        house = generate_house(house_seed(seed, i), toy_house_id(seed, i))
+        house = generate_house(house_seed(seed, i), toy_house_id(seed, i), options)
         folder = Path(out) / house.id
         try:
             write_house(house, folder)

@@ -9,6 +9,7 @@ import numpy as np
 from ...conventions import NYU40_IDS
 from ...errors import SceneforgeError
 from ..model import House, Level, Material, Room, make_instance
+from .hard_cases import ToyOptions, apply_hard_cases
 from .planner import Opening, envelope, plan_house
 from .primitives import mesh
 
@@ -52,10 +53,11 @@ def check_seed(seed) -> int:
     return int(seed)
 
 
-def build_toy_house(seed: int, house_id: str | None = None) -> ToyHouse:
-    """Generate the toy house of ``seed`` and the facts tests need about it.
+def build_toy_house(seed: int, house_id: str | None = None, options: ToyOptions | None = None) -> ToyHouse:
+    """Generate the toy house of ``seed`` and the facts tests need about it, with the hard
+    cases ``options`` asks for (:mod:`.hard_cases`; None: none).
 
-    The same ``seed`` always gives the same house, down to the bytes it is written as.
+    The same ``seed`` and options always give the same house, down to the bytes it is written as.
     """
     seed = check_seed(seed)
     rng = np.random.default_rng(seed)
@@ -77,13 +79,17 @@ def build_toy_house(seed: int, house_id: str | None = None) -> ToyHouse:
             )
             names[id(piece)] = inst.name
     pieces = [p for room in rooms for p in room.pieces]
-    return ToyHouse(
+    toy = ToyHouse(
         house=house.check_not_empty(),
         openings=openings,
         interiors={r.id: (r.lo, r.hi) for r in rooms},
         supports=[(names[id(p)], names[id(p.support)]) for p in pieces if p.support is not None],
         tucked=[(names[id(p)], names[id(p.under)]) for p in pieces if p.under is not None],
     )
+    if options is None or not options.any:
+        return toy
+    # a generator of its own: the default house's draws stay as they are
+    return apply_hard_cases(toy, options, np.random.default_rng([seed, 1]))
 
 
 def _colour(rng, category: str, used: set) -> tuple[float, float, float, float]:
@@ -96,6 +102,7 @@ def _colour(rng, category: str, used: set) -> tuple[float, float, float, float]:
             return (*rgb, 1.0)
 
 
-def generate_house(seed: int, house_id: str | None = None) -> House:
-    """The toy house of ``seed`` (id ``house_id``, default ``toy_<seed>``); see the module doc."""
-    return build_toy_house(seed, house_id).house
+def generate_house(seed: int, house_id: str | None = None, options: ToyOptions | None = None) -> House:
+    """The toy house of ``seed`` (id ``house_id``, default ``toy_<seed>``) with the hard cases
+    ``options`` asks for; see the module doc."""
+    return build_toy_house(seed, house_id, options).house
