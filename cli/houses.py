@@ -21,7 +21,11 @@ def houses():
 @config_options(DatasetConfig, HOUSE_OPTIONS)
 @click.option("--preview", "preview_dir", type=click.Path(file_okay=False), default=None,
               help="Write a top-down PNG per house into this folder (<house id>.png).")
-def inspect(path, config, preview_dir):
+@click.option("--cameras", "show_cameras", is_flag=True,
+              help="Also sample the cameras `sceneforge render` would (same --config, seed and "
+                   "views per house) and print the sampler's report: rejections by reason, each "
+                   "room's share, and what each accepted view sees.")
+def inspect(path, config, preview_dir, show_cameras):
     """Print a table per house in PATH: instances per NYU40 class, triangles, rooms,
     bounding box, the names that fell to void (with their share of the triangles) and
     problems found (no floor, no walls, no rooms, loader warnings). Houses are read as
@@ -68,6 +72,12 @@ def inspect(path, config, preview_dir):
                 out.print(f"[yellow]problem: {p}[/yellow]")
         else:
             out.print("problems: none")
+        if show_cameras and config.cameras is None:
+            from sceneforge.pipeline.plan import sample_house_cameras
+
+            _cameras, report = sample_house_cameras(house, config)
+            for line in report.lines():
+                out.print(line)
         if preview_dir:
             png = write_preview(house, Path(preview_dir) / f"{s.id}.png")
             out.print(f"preview: {png}")

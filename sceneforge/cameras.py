@@ -486,6 +486,23 @@ class SamplerReport:
                       for v in self.views],
         }
 
+    def lines(self) -> list[str]:
+        """The report as text: one summary line, the rejections, each room, each view."""
+        out = [f"cameras: {self.accepted} of {self.requested} accepted from {self.candidates} candidates"]
+        rejected = ", ".join(f"{k} {v}" for k, v in self.rejected.items() if v)
+        out.append(f"  rejected: {rejected or 'none'}")
+        for r in self.rooms:
+            out.append(f"  room {r.room or '(none)'} (level {r.level}, floor {r.floor_area:.1f} m²): share {r.share}, "
+                       f"{r.candidates} candidates, {r.valid} valid, {r.accepted} accepted")
+        for room, why in self.skipped.items():
+            out.append(f"  room {room} skipped: {why}")
+        for i, v in enumerate(self.views):
+            st = v.stats
+            out.append(f"  view {i}: room {v.room or '(none)'}, {st.objects} objects, D3 on "
+                       f"{100 * st.d3_fraction:.1f} % of pixels, envelope at {st.envelope_distance:.2f} m "
+                       f"(median), score {v.score:.3f}")
+        return out
+
 
 @dataclass(eq=False)
 class _Candidate:

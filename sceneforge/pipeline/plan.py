@@ -29,6 +29,15 @@ def _house_rng(seed: int, house_id: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(house_id.encode())])
 
 
+def sample_house_cameras(house, config: "DatasetConfig", tracer=None):
+    """The cameras ``sceneforge render`` samples for ``house`` with ``config`` and the
+    sampler's report (:class:`~sceneforge.cameras.SamplerReport`): the same generator
+    (seed and house id), so ``houses inspect --cameras`` shows what render will choose."""
+    from ..cameras import sample_cameras
+
+    return sample_cameras(house, config.views_per_house, _house_rng(config.seed, house.id), config.sampler, tracer)
+
+
 def _file_cameras(source: "HouseSource", config: "DatasetConfig"):
     """Cameras of ``<cameras>/<house id>/room_camera.txt`` and their 0-based line numbers."""
     from pathlib import Path
@@ -51,8 +60,6 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
     ``cameras`` (how they were chosen), ``camera_id``, ``K`` and ``cam_to_world`` per
     camera; or ``failure`` (``stage``, ``reason``) when the house cannot be used.
     """
-    from ..cameras import sample_cameras
-
     record = {"id": source.id, "format": source.format, "path": str(source.path)}
     stage = "load"
     try:
@@ -63,8 +70,7 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
         if config.cameras is not None:
             cameras, ids, info = _file_cameras(source, config)
         else:
-            cameras, report = sample_cameras(house, config.views_per_house, _house_rng(config.seed, source.id),
-                                             config.sampler, WORKER.tracer_of(house))
+            cameras, report = sample_house_cameras(house, config, WORKER.tracer_of(house))
             ids = list(range(len(cameras)))
             info = {"source": "sampled", **report.to_dict()}
         record["cameras"] = info
