@@ -7,43 +7,31 @@ from pathlib import Path
 
 import click
 
+from sceneforge.evaluate.config import EvaluateConfig
 
-def _surface_options(func):
-    """The options every surface precision/recall command shares."""
-    for option in reversed((
-        click.option("--density", type=click.FloatRange(min=0, min_open=True), default=10_000.0,
-                     show_default=True, help="Surface samples per m²."),
-        click.option("--seed", type=int, default=0, show_default=True,
-                     help="Seed of the surface sampling; view i draws from (seed, i)."),
-        click.option("--a", "a", type=click.FloatRange(min=0, min_open=True), default=7.0, show_default=True,
-                     help="Edge rule: no triangle edge across a depth jump above a × the pixel footprint."),
-        click.option("--threshold", type=click.FloatRange(min=0, min_open=True), default=0.05,
-                     show_default=True, help="Match threshold of the table, metres."),
-        click.option("--limit", type=click.IntRange(min=1), default=None,
-                     help="Only the first LIMIT views."),
-        click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
-                     help="Also write the table values and mean curves to this JSON file."),
-    )):
-        func = option(func)
-    return func
+from .options import ConfigOption, config_options
+
+#: the options of the surface precision/recall commands and the config fields they set
+SURFACE_OPTIONS = (
+    ConfigOption("--density", "surface.density", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--seed", "seed"),
+    ConfigOption("--a", "meshing.a", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--threshold", "surface.threshold", type=click.FloatRange(min=0, min_open=True)),
+)
+#: the options of ``evaluate voxels`` and the config fields they set
+VOXEL_OPTIONS = (
+    ConfigOption("--resolution", "voxels.resolution", type=click.IntRange(min=1)),
+    ConfigOption("--size", "voxels.size", type=click.FloatRange(min=0, min_open=True)),
+)
 
 
-def _views(store, limit) -> list[int]:
-    """Indices of the views to score: those among the first ``limit`` whose ground truth
-    did not fail (a failed view is blank in the store)."""
-    import numpy as np
-
-    n = len(store) if limit is None else min(limit, len(store))
-    if "valid" not in store.names:
-        return list(range(n))
-    return np.flatnonzero(np.asarray(store.array("valid")[:n], dtype=bool)).tolist()
+def _limit(func):
+    return click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first LIMIT views.")(func)
 
 
-def _report(pairs, variants, seed, density, threshold, a):
-    from sceneforge.evaluate import MeshingConfig, SurfaceConfig, evaluate_views
-
-    config = SurfaceConfig(density=density, threshold=threshold)
-    return evaluate_views(pairs, variants, seed, config, MeshingConfig(a=a))
+def _json(func):
+    return click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
+                        help="Also write the table values and mean curves to this JSON file.")(func)
 
 
 def _write(report, text, plot, json_path, title):
@@ -64,98 +52,70 @@ def evaluate():
 
 @evaluate.command()
 @click.argument("store")
-@_surface_options
+@config_options(EvaluateConfig, SURFACE_OPTIONS)
+@_limit
+@_json
 @click.option("--plot", type=click.Path(dir_okay=False), default="coverage.png", show_default=True,
               help="PNG of the precision and recall curves.")
-def coverage(store, density, seed, a, threshold, limit, json_path, plot):
+def coverage(store, config, limit, json_path, plot):
     """How much of each view's ground-truth mesh the meshes of its ground-truth layers
     cover (paper Table 1): recall at the threshold of D1, D1-2, D1-3, D1-4, D1-5 and
     D1-5 & overhead against objects + envelope, averaged over views, beside the paper's
     SUNCG numbers; also recall against objects alone and precision."""
-    from sceneforge.evaluate import COVERAGE_VARIANTS, EvalView, GroundTruthMesh
+    from sceneforge.evaluate import COVERAGE_VARIANTS, coverage_views, evaluate_views
     from sceneforge.store import open_store
 
-    s = open_store(store)
-    pairs = ((i, EvalView.from_arrays(s.view(i)), GroundTruthMesh.from_arrays(s.mesh(i)))
-             for i in _views(s, limit))
-    report = _report(pairs, COVERAGE_VARIANTS, seed, density, threshold, a)
+    report = evaluate_views(coverage_views(open_store(store), limit), COVERAGE_VARIANTS, config.seed,
+                            config.surface, config.meshing)
     _write(report, report.coverage_text(), plot, json_path, f"coverage of ground-truth layers: {store}")
 
 
 @evaluate.command()
 @click.argument("pred")
 @click.argument("gt")
-@_surface_options
+@config_options(EvaluateConfig, SURFACE_OPTIONS)
+@_limit
+@_json
 @click.option("--plot", type=click.Path(dir_okay=False), default="predictions.png", show_default=True,
               help="PNG of the precision and recall curves.")
-def predictions(pred, gt, density, seed, a, threshold, limit, json_path, plot):
+def predictions(pred, gt, config, limit, json_path, plot):
     """Precision and recall of predicted layers (PRED, written by `sceneforge predict` in
     the store layout) against the ground-truth meshes of GT (the paper's table in §5): D1,
     D1 & overhead, D1-4 and D1-4 & overhead against objects, beside the paper's SUNCG
     numbers. Cameras and overhead cameras are PRED's; view i of PRED must be view i of GT."""
-    from sceneforge.evaluate import PREDICTION_VARIANTS, EvalView, GroundTruthMesh
+    from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
     from sceneforge.store import open_store
 
-    p, g = open_store(pred), open_store(gt)
-    pairs = ((i, EvalView.from_arrays(_matching(p, g, i)), GroundTruthMesh.from_arrays(g.mesh(i)))
-             for i in _views(p, limit))
-    report = _report(pairs, PREDICTION_VARIANTS, seed, density, threshold, a)
+    report = evaluate_views(prediction_views(open_store(pred), open_store(gt), limit), PREDICTION_VARIANTS,
+                            config.seed, config.surface, config.meshing)
     _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}")
 
 
-def _matching(pred, gt, i: int) -> dict:
-    """View ``i`` of ``pred``, after checking that it is view ``i`` of ``gt``."""
-    import numpy as np
-
-    from sceneforge.errors import SceneforgeError
-
-    if len(pred) > len(gt):
-        raise SceneforgeError(f"the predictions have {len(pred)} views but the ground truth only {len(gt)}")
-    p, g = pred.view(i), gt.view(i)
-    for key in ("house_id", "camera_id"):
-        if str(p[key]) != str(g[key]):
-            raise SceneforgeError(f"view {i}: {key} {p[key]} in the predictions, {g[key]} in the truth")
-    if not np.allclose(p["cam_to_world"], g["cam_to_world"], atol=1e-6):
-        raise SceneforgeError(f"view {i}: the predictions come from another camera pose than the truth")
-    return p
+def _voxel_line(v) -> str:
+    return (f"view {v.index:>4}  {v.house_id:<16} camera {v.camera_id:>3}  IoU {v.score.iou:.3f}  "
+            f"(predicted {v.score.predicted:,}, truth {v.score.truth:,} voxels)")
 
 
 @evaluate.command()
 @click.argument("layers")
 @click.argument("gt", required=False)
-@click.option("--resolution", type=click.IntRange(min=1), default=400, show_default=True,
-              help="Voxels along each axis.")
-@click.option("--size", type=click.FloatRange(min=0, min_open=True), default=10.0, show_default=True,
-              help="Side of the voxel cube in front of the camera, metres.")
-@click.option("--limit", type=click.IntRange(min=1), default=None, help="Only the first LIMIT views.")
+@config_options(EvaluateConfig, VOXEL_OPTIONS)
+@_limit
 @click.option("--plot", type=click.Path(dir_okay=False), default="voxel_iou.png", show_default=True,
               help="PNG of the histogram of per-view IoU.")
-def voxels(layers, gt, resolution, size, limit, plot):
+def voxels(layers, gt, config, limit, plot):
     """Voxel IoU of the layer intervals (D1, D2) and (D3, D4) of LAYERS against the solid
     ground-truth object mesh of GT, per view, in a grid of RESOLUTION³ voxels over a
     SIZE m cube in front of the camera (paper supplement: 400³, 10 m). Without GT the
     layers and meshes are both LAYERS's: the IoU of the ground-truth layers themselves."""
-    import numpy as np
-
-    from sceneforge.evaluate import GroundTruthMesh, VoxelConfig, plot_iou_histogram, score_voxels
+    from sceneforge.evaluate import plot_iou_histogram, score_store_voxels
     from sceneforge.store import open_store
 
-    config = VoxelConfig(resolution=resolution, size=size)
-    source = open_store(layers)
-    truth = open_store(gt) if gt else source
-    ious = []
-    for i in _views(source, limit):
-        view = _matching(source, truth, i) if gt else source.view(i)
-        score = score_voxels(view["depth"], view["K"], view["cam_to_world"],
-                             GroundTruthMesh.from_arrays(truth.mesh(i)).objects, config)
-        ious.append(score.iou)
-        click.echo(f"view {i:>4}  {str(view['house_id']):<16} camera {int(view['camera_id']):>3}  IoU "
-                   f"{score.iou:.3f}  (predicted {score.predicted:,}, truth {score.truth:,} voxels)")
-    values = np.asarray(ious, dtype=np.float64)
-    scored = values[np.isfinite(values)]
-    mean = f"{scored.mean():.3f}" if len(scored) else "—"
-    click.echo(f"mean voxel IoU {mean} over {len(scored)} views "
-               f"({len(values) - len(scored)} without objects)")
+    report = score_store_voxels(open_store(layers), open_store(gt) if gt else None, config.voxels, limit,
+                                on_view=lambda v: click.echo(_voxel_line(v)))
+    mean = "—" if report.scored == 0 else f"{report.mean:.3f}"
+    click.echo(f"mean voxel IoU {mean} over {report.scored} views "
+               f"({len(report.views) - report.scored} without objects)")
     Path(plot).parent.mkdir(parents=True, exist_ok=True)
-    plot_iou_histogram(values, f"voxel IoU of {layers}").savefig(plot, dpi=100)
+    plot_iou_histogram(report.ious, f"voxel IoU of {layers}").savefig(plot, dpi=100)
     click.echo(f"histogram: {plot}")

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import click
 
-from .options import house_options
+from sceneforge.config import DatasetConfig
+
+from .options import HOUSE_OPTIONS, config_options
 
 
 @click.group()
@@ -16,12 +18,13 @@ def houses():
 
 @houses.command()
 @click.argument("path")
-@house_options
+@config_options(DatasetConfig, HOUSE_OPTIONS)
 @click.option("--preview", "preview_dir", type=click.Path(file_okay=False), default=None,
               help="Write a top-down PNG per house into this folder (<house id>.png).")
-def inspect(path, load_options, preview_dir):
+def inspect(path, config, preview_dir):
     """Print a table per house in PATH: instances per NYU40 class, triangles, rooms,
-    bounding box and problems found.
+    bounding box and problems found. Houses are read as `sceneforge render` reads them
+    (the `houses` section of --config).
 
     PATH is one house, a folder of houses in any supported format, a SUNCG root, a
     3D-FRONT root, or `bundled:toy` for the toy houses shipped with sceneforge. A house that fails to load is reported in red and the others go on;
@@ -35,7 +38,7 @@ def inspect(path, load_options, preview_dir):
 
     out = Console(highlight=False, soft_wrap=True)
     ok = failed = 0
-    for _source, house, error in iter_houses(path, load_options):
+    for _source, house, error in iter_houses(path, config.houses):
         if error is not None:
             failed += 1
             out.print(f"[red]failed: {error}[/red]")

@@ -2,46 +2,33 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import click
 from click.core import ParameterSource
 
-from .options import house_options
+from sceneforge.config import DatasetConfig
+
+from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
 from .progress import RichProgress, progress_bar
 
-#: house option parameter → its field of the config's ``houses`` section
-_HOUSE_FIELDS = {"fmt": "format", "strict": "strict", "scale": "scale", "up_axis": "up_axis",
-                 "name_map": "name_map", "future_dir": "future_dir"}
-
-
-def _resolution(ctx, param, value):
-    if value is None:
-        return None
-    match = re.fullmatch(r"(\d+)[xX×](\d+)", value)
-    if not match or not all(int(g) > 0 for g in match.groups()):
-        raise click.BadParameter(f"expected WIDTHxHEIGHT such as 320x240, got {value!r}")
-    return int(match.group(1)), int(match.group(2))
+#: the options of ``render`` and the config fields they set (help and defaults: the fields')
+RENDER_OPTIONS = (
+    *HOUSE_OPTIONS,
+    ConfigOption("--views-per-house", "views_per_house", type=click.IntRange(min=1)),
+    ConfigOption("--cameras", "cameras", type=click.Path(exists=True, file_okay=False), convert=absolute_path,
+                 metavar="DIR"),
+    ConfigOption("--resolution", ("width", "height"), type=Size(), metavar="WxH"),
+    ConfigOption("--overhead-resolution", "view.overhead.resolution", type=click.IntRange(min=1)),
+    ConfigOption("--seed", "seed"),
+    ConfigOption("--rgb/--no-rgb", "rgb.enabled"),
+)
 
 
 @click.command()
 @click.argument("houses")
 @click.argument("out")
-@house_options
-@click.option("--config", "config_file", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="JSON config (schemas/config.schema.json); the options below override it.")
-@click.option("--views-per-house", type=click.IntRange(min=1), default=None,
-              help="Cameras sampled per house. [config default: 4]")
-@click.option("--cameras", "cameras_dir", type=click.Path(exists=True, file_okay=False), default=None,
-              help="Folder of PBRS camera files DIR/<house id>/room_camera.txt (every line, in order) "
-                   "instead of sampled cameras.")
-@click.option("--resolution", callback=_resolution, default=None, metavar="WxH",
-              help="Frontal image size. [config default: 320x240]")
-@click.option("--overhead-resolution", type=click.IntRange(min=1), default=None,
-              help="Overhead image size (square). [config default: 300]")
-@click.option("--seed", type=int, default=None, help="Seed of the camera sampler. [config default: 0]")
-@click.option("--rgb/--no-rgb", default=None, help="Render RGB images (needs pyrender and EGL). [default: on]")
+@config_options(DatasetConfig, RENDER_OPTIONS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes; with --scheduler local, the LocalCluster's workers; ignored "
                    "with a remote scheduler.")
@@ -49,8 +36,7 @@ def _resolution(ctx, param, value):
               help="Run on a Dask cluster: its scheduler address (tcp://host:8786), or `local` to start "
                    "a LocalCluster of --workers processes.")
 @click.option("--overwrite", is_flag=True, help="Delete the store at OUT first and start over.")
-def render(houses, out, load_options, config_file, views_per_house, cameras_dir, resolution,
-           overhead_resolution, seed, rgb, workers, scheduler, overwrite):
+def render(houses, out, config, workers, scheduler, overwrite):
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
@@ -63,30 +49,11 @@ def render(houses, out, load_options, config_file, views_per_house, cameras_dir,
     """
     from rich.console import Console
 
-    from sceneforge.config import load_config
     from sceneforge.pipeline import render_dataset
 
     ctx = click.get_current_context()
-    if cameras_dir is not None and views_per_house is not None:
+    if all(ctx.get_parameter_source(p) == ParameterSource.COMMANDLINE for p in ("cameras", "views_per_house")):
         raise click.UsageError("--cameras and --views-per-house exclude each other")
-    overrides: dict = {}
-    if resolution is not None:
-        overrides["width"], overrides["height"] = resolution
-    if views_per_house is not None:
-        overrides["views_per_house"] = views_per_house
-    if cameras_dir is not None:
-        overrides["cameras"] = str(Path(cameras_dir).resolve())
-    if seed is not None:
-        overrides["seed"] = seed
-    if overhead_resolution is not None:
-        overrides["view"] = {"overhead": {"resolution": overhead_resolution}}
-    if rgb is not None:
-        overrides["rgb"] = {"enabled": rgb}
-    given = {f: getattr(load_options, f) for p, f in _HOUSE_FIELDS.items()
-             if ctx.get_parameter_source(p) == ParameterSource.COMMANDLINE}
-    if given:
-        overrides["houses"] = given
-    config = load_config(config_file, overrides)
 
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:

@@ -6,9 +6,37 @@ from pathlib import Path
 
 import click
 
+from sceneforge.learn.config import PredictConfig, TrainConfig
+
+from .options import ConfigOption, config_options
 from .progress import RichProgress, progress_bar
 
-STAGES = ("depth", "seg", "overhead", "camera")
+#: where runs go when no --run is given, and where the frozen runs are looked for
+RUNS = "runs"
+#: the options of ``train`` and the config fields they set (help and defaults: the fields')
+TRAIN_OPTIONS = (
+    ConfigOption("stores", "stores"),
+    ConfigOption("--stage", "stage"),
+    ConfigOption("--depth-run", "depth_run", type=click.Path(file_okay=False)),
+    ConfigOption("--seg-run", "seg_run", type=click.Path(file_okay=False)),
+    ConfigOption("--epochs", "epochs", type=click.IntRange(min=1)),
+    ConfigOption("--max-steps", "max_steps", type=click.IntRange(min=1)),
+    ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
+    ConfigOption("--lr", "lr", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--width", "width", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--bn-momentum", "bn_momentum", type=click.FloatRange(0, 1, min_open=True)),
+    # one seed for the weights, the data order and the split, as before the split had its own
+    ConfigOption("--seed", ("seed", "split.seed")),
+    ConfigOption("--eft-layers", "eft_layers"),
+    ConfigOption("--gating", "eft.gating"),
+    ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
+    ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),
+)
+#: the options of ``predict`` and the config fields they set
+PREDICT_OPTIONS = (
+    ConfigOption("--camera-run", "camera_run", type=click.Path(exists=True, file_okay=False)),
+    ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
+)
 
 
 class _TrainBar:
@@ -33,37 +61,9 @@ def _train_bar(console):
 
 
 @click.command()
-@click.argument("stores", nargs=-1, required=True)
-@click.option("--stage", type=click.Choice(STAGES), required=True,
-              help="What to train: the frontal depth or segmentation net, then the overhead nets "
-                   "(on the frozen frontal nets) or the virtual camera proposal.")
+@config_options(TrainConfig, TRAIN_OPTIONS)
 @click.option("--run", "run_dir", type=click.Path(file_okay=False), default=None,
               help="Run folder (config, split, checkpoint, metrics, loss curve). [default: runs/STAGE]")
-@click.option("--depth-run", type=click.Path(file_okay=False), default=None,
-              help="overhead/camera: the trained depth run to freeze. [default: runs/depth]")
-@click.option("--seg-run", type=click.Path(file_okay=False), default=None,
-              help="overhead: the trained segmentation run to freeze. [default: runs/seg]")
-@click.option("--epochs", type=click.IntRange(min=1), default=40, show_default=True,
-              help="Passes over the data.")
-@click.option("--max-steps", type=click.IntRange(min=1), default=None, help="Stop after this many steps.")
-@click.option("--batch-size", type=click.IntRange(min=1), default=24, show_default=True,
-              help="Views per batch.")
-@click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=5e-4, show_default=True,
-              help="Adam learning rate.")
-@click.option("--width", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True,
-              help="Multiplies every network width of the paper (e.g. 0.25 for a quick run).")
-@click.option("--bn-momentum", type=click.FloatRange(0, 1, min_open=True), default=0.005, show_default=True,
-              help="BatchNorm momentum (paper: 0.005; about 0.1 for a run of a few hundred steps).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of initialisation and data order.")
-@click.option("--eft-layers", type=click.Choice(["predicted", "truth"]), default="predicted",
-              show_default=True,
-              help="overhead: frontal layers the EFT reads, the frozen nets' or the store's.")
-@click.option("--gating", type=click.Choice(["volume", "surface"]), default="volume", show_default=True,
-              help="overhead: EFT gating, mean along ray segments or z-buffer of their ends.")
-@click.option("--val-fraction", type=click.FloatRange(0, 1), default=0.1, show_default=True,
-              help="Fraction of the houses held out for validation.")
-@click.option("--test-fraction", type=click.FloatRange(0, 1), default=0.1, show_default=True,
-              help="Fraction of the houses held out for testing.")
 @click.option("--device", default="auto", show_default=True,
               help="auto (GPU when present), cpu, cuda, cuda:1, ...")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
@@ -71,35 +71,21 @@ def _train_bar(console):
 @click.option("--resume", is_flag=True, help="Continue the run saved in the run folder.")
 @click.option("--tensorboard/--no-tensorboard", default=True, show_default=True,
               help="Also log to RUN/tensorboard when TensorBoard is installed.")
-def train(stores, stage, run_dir, depth_run, seg_run, epochs, max_steps, batch_size, lr, width, bn_momentum,
-          seed, eft_layers, gating, val_fraction, test_fraction, device, workers, resume, tensorboard):
+def train(config, run_dir, device, workers, resume, tensorboard):
     """Train one STAGE of the paper's networks on the zarr STORES (split by house).
 
     Train `depth` and `seg` first, then `overhead` and `camera`, which read the frozen
-    frontal runs. Adam, lr 5e-4 and batch 24 as in the paper. The run folder gets the
-    resolved config, the house split, a checkpoint (--resume continues from it), the
+    frontal runs (default: runs/depth and runs/seg). Adam, with the paper's learning rate
+    and batch size by default. The run folder gets the resolved config (reload it with --config
+    RUN/config.json), the house split, a checkpoint (--resume continues from it), the
     metrics as CSV and a loss-curve PNG at the end.
     """
     from rich.console import Console
 
-    from sceneforge.learn.dataset import SplitConfig
-    from sceneforge.learn.eft import EFTConfig
-    from sceneforge.learn.train import TrainConfig
     from sceneforge.learn.train import train as run_training
 
-    if val_fraction + test_fraction >= 1:
-        raise click.BadParameter("validation and test fractions must sum below 1",
-                                 param_hint="--val-fraction")
-    run = Path(run_dir or Path("runs") / stage)
-    if stage in ("overhead", "camera"):
-        depth_run = depth_run or str(Path("runs") / "depth")
-    if stage == "overhead":
-        seg_run = seg_run or str(Path("runs") / "seg")
-    config = TrainConfig(stage=stage, stores=stores, batch_size=batch_size, lr=lr, epochs=epochs,
-                         max_steps=max_steps, seed=seed, width=width, bn_momentum=bn_momentum,
-                         depth_run=depth_run, seg_run=seg_run,
-                         eft_layers=eft_layers, eft=EFTConfig(gating=gating),
-                         split=SplitConfig(val_fraction=val_fraction, test_fraction=test_fraction, seed=seed))
+    run = Path(run_dir or Path(RUNS) / config.stage)
+    config = config.with_frozen_runs(RUNS)
     console = Console(highlight=False, stderr=True)
     with _train_bar(console) as bar:
         result = run_training(config, run, device=device, workers=workers, resume=resume,
@@ -114,16 +100,12 @@ def train(stores, stage, run_dir, depth_run, seg_run, epochs, max_steps, batch_s
 @click.argument("run", type=click.Path(exists=True, file_okay=False))
 @click.argument("store")
 @click.argument("out")
-@click.option("--camera-run", type=click.Path(exists=True, file_okay=False), default=None,
-              help="A camera proposal run: place the overhead cameras from its predictions "
-                   "instead of the store's.")
-@click.option("--batch-size", type=click.IntRange(min=1), default=8, show_default=True,
-              help="Views per batch.")
+@config_options(PredictConfig, PREDICT_OPTIONS)
 @click.option("--device", default="auto", show_default=True, help="auto (GPU when present), cpu, cuda, ...")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
               help="DataLoader worker processes.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def predict(run, store, out, camera_run, batch_size, device, workers, overwrite):
+def predict(run, store, out, config, device, workers, overwrite):
     """Write the predictions of the trained RUN for every view of STORE to the store OUT,
     in the store layout, so `sceneforge evaluate` reads them like ground truth.
 
@@ -137,7 +119,7 @@ def predict(run, store, out, camera_run, batch_size, device, workers, overwrite)
 
     console = Console(highlight=False, stderr=True)
     with progress_bar(console) as bar:
-        summary = run_prediction(run, store, out, camera_run=camera_run, batch_size=batch_size, device=device,
-                                 workers=workers, overwrite=overwrite, progress=RichProgress(bar))
+        summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,
+                                 device=device, workers=workers, overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "
                   f"({', '.join(summary.stages)}) in {summary.seconds:.1f} s")

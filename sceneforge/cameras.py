@@ -1,15 +1,11 @@
 """Pinhole cameras: intrinsics, poses, PBRS camera files and the seeded camera sampler (SPEC §1, §3).
 
-Conventions (defined here once, used everywhere):
-
-- ``cam_to_world`` is a 4×4 float64 pose in **OpenCV axes**: camera x right, y down,
-  z forward. Its columns are the camera axes and the camera centre in world coordinates.
-- ``K`` is 3×3 in pixels. Pixel ``(row i, column j)`` covers ``[j, j+1) × [i, i+1)``, so
-  its centre is at ``(u, v) = (j + 0.5, i + 0.5)``; the default principal point is the
-  image centre ``(W/2, H/2)``.
-- Depth is planar: the camera-frame z of a point, not its distance from the centre.
-- pyrender/OpenGL cameras use x right, y up, z backward; :func:`opencv_to_opengl` is the
-  only conversion.
+The conventions cameras follow are defined in :mod:`sceneforge.conventions` (OpenCV axes
+``CAMERA_AXES``, pixel centres at integer + ``PIXEL_CENTRE``, planar depth). This module
+implements them: ``cam_to_world`` is a 4×4 float64 pose whose columns are the camera
+axes and the camera centre in world coordinates; the default principal point is the
+image centre ``(W/2, H/2)``; and :func:`opencv_to_opengl` is the only conversion to the
+pyrender/OpenGL axes (x right, y up, z backward).
 """
 
 from __future__ import annotations
@@ -22,7 +18,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .conventions import NYU40_IDS
+from .conventions import NYU40_IDS, tol
 from .errors import HouseError, SceneforgeError
 
 if TYPE_CHECKING:
@@ -59,7 +55,7 @@ class Camera:
         if pose.shape != (4, 4) or not np.isfinite(pose).all() or not np.array_equal(pose[3], [0, 0, 0, 1]):
             raise ValueError(f"cam_to_world must be a finite (4, 4) rigid transform, got {pose!r}")
         R = pose[:3, :3]
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        if not np.allclose(R.T @ R, np.eye(3), atol=tol.rotation) or np.linalg.det(R) < 0:
             raise ValueError("cam_to_world rotation must be orthonormal and right-handed")
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"image size must be positive, got {self.width}×{self.height}")
@@ -197,7 +193,7 @@ def pose_from_view(position, view_dir, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     z = z / nz
     x = np.cross(z, up)
     nx = np.linalg.norm(x)
-    if nx < 1e-9 * max(np.linalg.norm(up), 1e-300):
+    if nx < tol.parallel * max(np.linalg.norm(up), 1e-300):
         raise ValueError(f"view direction {z} is parallel to the up vector {up}")
     x /= nx
     y = np.cross(z, x)
@@ -312,7 +308,7 @@ REJECT_REASONS = ("not_above_floor", "too_close", "escapes", "few_objects")
 
 @dataclass(frozen=True)
 class CameraSamplerConfig:
-    """How :func:`sample_cameras` places cameras. Field docs double as CLI help."""
+    """How :func:`sample_cameras` places cameras. Field docs become the config schema's descriptions."""
 
     #: camera height above the floor under it, metres
     eye_height: float = 1.5
@@ -436,7 +432,7 @@ def sample_cameras(
         eye = (1 - s) * a + s * (1 - r2) * b + s * r2 * c + [0.0, config.eye_height, 0.0]
 
         below = tracer.first_hit(eye[None], down)
-        if not (is_floor[below.instance[0]] and abs(below.t[0] - config.eye_height) < 1e-3):
+        if not (is_floor[below.instance[0]] and abs(below.t[0] - config.eye_height) < tol.eye_above_floor):
             report.rejected["not_above_floor"] += 1
             continue
         if tracer.closest_distance(eye[None])[0] < config.min_surface_distance:

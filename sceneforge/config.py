@@ -1,16 +1,25 @@
-"""The configuration of a ``sceneforge render`` run: frozen dataclasses, JSON in and out.
+"""Config dataclasses → JSON in and out, JSON Schemas and command-line options; and the
+configuration of a ``sceneforge render`` run.
 
-:class:`DatasetConfig` composes the configs that sit next to the code they steer
+Every config of sceneforge is a frozen dataclass with a ``#:`` doc above each field, next
+to the code it steers. This module is the one machinery they all go through:
+
+- :func:`dataclass_to_dict` / :func:`dataclass_from_dict`: JSON-ready data and back;
+- :func:`object_schema`: the JSON Schema of a dataclass (types, defaults, the ``#:`` docs
+  as descriptions, unknown keys rejected); :data:`SCHEMAS` names the root configs whose
+  schemas live in ``schemas/`` (a test checks the files against them; regenerate them
+  with ``python -m sceneforge.config``);
+- :func:`resolve_config`: defaults < a JSON config file < command-line overrides, validated
+  against the root's schema;
+- :func:`field_docs`, :func:`field_default`, :func:`field_type`: what ``sceneforge.cli``
+  builds every option's help, shown default and type from, so they exist once.
+
+:class:`DatasetConfig` composes the configs of a render run
 (:class:`~sceneforge.houses.LoadOptions`, :class:`~sceneforge.cameras.CameraSamplerConfig`,
 :class:`~sceneforge.view.ViewConfig`, :class:`~sceneforge.render.RenderConfig`) with the
-RGB switches and store settings defined here. A run
-resolves it once (defaults < config file < command-line overrides), validates it against
+RGB switches and store settings defined here. A run resolves it once, validates it against
 ``schemas/config.schema.json`` and saves it, resolved, into the store it writes; the saved
 dict loads back into the same config with :meth:`DatasetConfig.from_dict`.
-
-The JSON Schema is generated from these dataclasses (:func:`config_schema`: field types,
-defaults and the ``#:`` field docs), so the two cannot drift; a test checks the file in
-``schemas/`` against it. Regenerate it with ``python -m sceneforge.config``.
 
 The image size is set once, by :attr:`DatasetConfig.width` and :attr:`DatasetConfig.height`;
 the camera sampler's own ``width``/``height`` follow them and are not part of the file.
@@ -18,12 +27,14 @@ the camera sampler's own ``width``/``height`` follow them and are not part of th
 
 from __future__ import annotations
 
+import importlib
 import inspect
 import json
 import re
 import types
 import typing
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
+from functools import lru_cache
 from pathlib import Path
 
 from .cameras import CameraSamplerConfig
@@ -111,13 +122,7 @@ class DatasetConfig:
 
         Raises :class:`SceneforgeError` naming ``what`` and the problem.
         """
-        from sceneforge import schemas
-
-        schemas.validate_or_raise(data, "config", what=what)
-        try:
-            return dataclass_from_dict(cls, data)
-        except ValueError as e:
-            raise SceneforgeError(f"{what}: {e}") from None
+        return build_config(cls, data, schema="config", what=what)
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> DatasetConfig:
@@ -126,19 +131,72 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     ``overrides`` is nested like the file (``{"view": {"overhead": {"resolution": 64}}}``).
     Raises :class:`SceneforgeError` for an unreadable file or an invalid config.
     """
-    data: dict = {}
-    what = "config"
-    if path is not None:
-        what = str(path)
-        try:
-            data = json.loads(Path(path).read_text())
-        except OSError as e:
-            raise SceneforgeError(f"{path}: cannot read config ({e.strerror or e})") from None
-        except ValueError as e:
-            raise SceneforgeError(f"{path}: not valid JSON ({e})") from None
-        if not isinstance(data, dict):
-            raise SceneforgeError(f"{path}: a config file holds one JSON object")
-    return DatasetConfig.from_dict(_merge(data, overrides or {}), what=what)
+    return resolve_config(DatasetConfig, path, overrides)
+
+
+# ----------------------------------------------------------------------------- resolving
+
+#: schema name → its root config dataclass ("module:attribute", imported when needed) and
+#: title; each is written to ``schemas/<name>.schema.json``
+SCHEMAS: dict[str, tuple[str, str]] = {
+    "config": ("sceneforge.config:DatasetConfig", "sceneforge render config"),
+    "train": ("sceneforge.learn.config:TrainConfig", "sceneforge train config"),
+    "predict": ("sceneforge.learn.config:PredictConfig", "sceneforge predict config"),
+    "evaluate": ("sceneforge.evaluate.config:EvaluateConfig", "sceneforge evaluate config"),
+}
+
+
+def root_config(name: str) -> type:
+    """The root config dataclass of schema ``name``."""
+    module, attr = SCHEMAS[name][0].split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+def schema_of(cls: type) -> str:
+    """The name of the schema (in :data:`SCHEMAS`) whose root config is ``cls``."""
+    for name, (target, _) in SCHEMAS.items():
+        if target == f"{cls.__module__}:{cls.__qualname__}":
+            return name
+    raise KeyError(f"{cls.__qualname__} is the root of no schema in SCHEMAS")
+
+
+def build_config(cls, data: dict, *, schema: str, what: str):
+    """``data`` validated against ``schemas/<schema>.schema.json``, as the config ``cls``.
+
+    Raises :class:`SceneforgeError` naming ``what`` and the problem: an unknown key (by its
+    dotted name), a value of the wrong type, or a value the dataclass rejects.
+    """
+    from sceneforge import schemas
+
+    schemas.validate_or_raise(data, schema, what=what)
+    try:
+        return dataclass_from_dict(cls, data)
+    except (TypeError, ValueError) as e:
+        raise SceneforgeError(f"{what}: {e}") from None
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The JSON object in the config file ``path`` (not yet validated)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise SceneforgeError(f"{path}: cannot read config ({e.strerror or e})") from None
+    except ValueError as e:
+        raise SceneforgeError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise SceneforgeError(f"{path}: a config file holds one JSON object")
+    return data
+
+
+def resolve_config(cls, path: str | Path | None = None, overrides: dict | None = None):
+    """The root config ``cls`` (a class of :data:`SCHEMAS`): its defaults, updated by the
+    JSON file at ``path``, updated by ``overrides`` (nested like the file), validated.
+
+    Raises :class:`SceneforgeError` for an unreadable file or an invalid config.
+    """
+    data = {} if path is None else read_config_file(path)
+    what = "config" if path is None else str(path)
+    return cls.from_dict(_merge(data, overrides or {}), what=what)
 
 
 def _merge(base: dict, update: dict) -> dict:
@@ -185,8 +243,7 @@ def _coerce(hint, value):
     if is_dataclass(hint):
         return dataclass_from_dict(hint, value)
     if origin in (typing.Union, types.UnionType):
-        (inner,) = [a for a in args if a is not type(None)]
-        return _coerce(inner, value)
+        return _coerce(_optional_inner(hint), value)
     if origin is tuple:
         item = args[0]
         return tuple(_coerce(args[i] if args[-1] is not Ellipsis else item, v) for i, v in enumerate(value))
@@ -195,12 +252,16 @@ def _coerce(hint, value):
     return value
 
 
-# ----------------------------------------------------------------------------- schema
+def _optional_inner(hint):
+    """``X`` of ``X | None`` (the only unions configs use)."""
+    (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]
+    return inner
 
-_JSON_TYPES = {bool: "boolean", int: "integer", float: "number", str: "string"}
 
+# ----------------------------------------------------------------------------- fields
 
-def _field_docs(cls) -> dict[str, str]:
+@lru_cache(maxsize=None)
+def field_docs(cls) -> dict[str, str]:
     """The ``#:`` comments written above each field of a dataclass, by field name."""
     docs, pending = {}, []
     for line in inspect.getsource(cls).splitlines():
@@ -215,14 +276,58 @@ def _field_docs(cls) -> dict[str, str]:
     return docs
 
 
+def _field_path(cls, path: str) -> list[tuple[type, "typing.Any"]]:
+    """(dataclass, field) for each step of the dotted ``path`` from ``cls``."""
+    steps = []
+    for name in path.split("."):
+        match = [f for f in fields(cls) if f.name == name]
+        if not match:
+            raise KeyError(f"{cls.__qualname__} has no field {name!r} (in {path!r})")
+        steps.append((cls, match[0]))
+        cls = typing.get_type_hints(cls)[name]
+    return steps
+
+
+def field_type(cls, path: str):
+    """The type hint of the field at the dotted ``path`` (``"view.overhead.resolution"``)."""
+    owner, f = _field_path(cls, path)[-1]
+    return typing.get_type_hints(owner)[f.name]
+
+
+def field_doc(cls, path: str) -> str | None:
+    """The ``#:`` doc of the field at the dotted ``path``."""
+    owner, f = _field_path(cls, path)[-1]
+    return field_docs(owner).get(f.name)
+
+
+def field_default(cls, path: str):
+    """The default of the field at the dotted ``path``: the value a config has there when
+    neither a file nor an option sets it (``MISSING`` for a required field). Nested
+    defaults are read from the instance their parent's factory makes."""
+    steps = _field_path(cls, path)
+    _, first = steps[0]
+    value = first.default if first.default_factory is MISSING else first.default_factory()
+    for _, f in steps[1:]:
+        value = getattr(value, f.name)
+    return value
+
+
+# ----------------------------------------------------------------------------- schema
+
+_JSON_TYPES = {bool: "boolean", int: "integer", float: "number", str: "string"}
+
+
 def _type_schema(hint) -> dict:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if is_dataclass(hint):
-        return _object_schema(hint)
+        return object_schema(hint)
+    if origin is typing.Literal:
+        return {"type": _JSON_TYPES[type(args[0])], "enum": list(args)}
     if origin in (typing.Union, types.UnionType):
-        (inner,) = [a for a in args if a is not type(None)]
-        schema = _type_schema(inner)
+        schema = _type_schema(_optional_inner(hint))
         schema["type"] = [schema["type"], "null"]
+        if "enum" in schema:
+            schema["enum"] = [*schema["enum"], None]
         return schema
     if origin is tuple:
         if len(args) == 2 and args[1] is Ellipsis:
@@ -231,11 +336,12 @@ def _type_schema(hint) -> dict:
     return {"type": _JSON_TYPES[hint]}
 
 
-def _object_schema(cls) -> dict:
+def object_schema(cls) -> dict:
+    """The JSON Schema of the config dataclass ``cls`` (nested dataclasses inline)."""
     hints = typing.get_type_hints(cls)
-    docs = _field_docs(cls)
+    docs = field_docs(cls)
     skip = _DERIVED.get(cls, frozenset())
-    props = {}
+    props, required = {}, []
     for f in fields(cls):
         if f.name in skip:
             continue
@@ -244,20 +350,46 @@ def _object_schema(cls) -> dict:
             prop = {"description": docs[f.name], **prop}
         if f.default is not MISSING and not is_dataclass(f.default):
             prop["default"] = list(f.default) if isinstance(f.default, tuple) else f.default
+        elif f.default is MISSING and f.default_factory is MISSING:
+            required.append(f.name)
         props[f.name] = prop
-    return {"type": "object", "description": inspect.getdoc(cls).split("\n\n")[0].replace("\n", " "),
-            "properties": props, "additionalProperties": False}
+    schema = {"type": "object", "description": inspect.getdoc(cls).split("\n\n")[0].replace("\n", " "),
+              "properties": props}
+    if required:
+        schema["required"] = required
+    return {**schema, "additionalProperties": False}
 
 
-def config_schema() -> dict:
-    """The JSON Schema of a config file (and of the config saved in a store)."""
+def schema(name: str) -> dict:
+    """The JSON Schema ``schemas/<name>.schema.json``, generated from its root config."""
+    title = SCHEMAS[name][1]
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "$id": "https://sceneforge.invalid/schemas/config.schema.json",
-        "title": "sceneforge render config",
-        **_object_schema(DatasetConfig),
+        "$id": f"https://sceneforge.invalid/schemas/{name}.schema.json",
+        "title": title,
+        **object_schema(root_config(name)),
     }
 
 
+def config_schema() -> dict:
+    """The JSON Schema of a render config file (and of the config saved in a store)."""
+    return schema("config")
+
+
+def write_schemas(folder: str | Path | None = None) -> list[Path]:
+    """Write every schema of :data:`SCHEMAS` into ``folder`` (default: the installed
+    ``schemas/``); the paths written."""
+    from sceneforge import schemas
+
+    folder = Path(folder or Path(schemas.__file__).parent)
+    paths = []
+    for name in SCHEMAS:
+        path = folder / f"{name}.schema.json"
+        path.write_text(json.dumps(schema(name), indent=2, ensure_ascii=False) + "\n")
+        paths.append(path)
+    return paths
+
+
 if __name__ == "__main__":
-    print(json.dumps(config_schema(), indent=2, ensure_ascii=False))
+    for written in write_schemas():
+        print(written)

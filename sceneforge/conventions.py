@@ -1,19 +1,31 @@
-"""Conventions, defined once and referred to everywhere (SPEC §1).
+"""Conventions, defined once here and referred to everywhere else (SPEC §1).
 
-- Units are metres; world up is +Y. Loaders of Z-up sources convert at load time.
-- Camera poses are ``cam_to_world`` 4×4 float64 in **OpenCV axes** (x right, y down,
-  z forward). The single OpenCV ↔ OpenGL conversion lives in ``sceneforge.cameras``.
-- Intrinsics ``K`` are 3×3 in pixels; pixel centres are at integer + 0.5.
+Every convention below is a constant or a function of this module; other modules and
+docstrings refer to it rather than restating it, and a store records them through
+:func:`record` (its ``conventions`` attribute).
+
+- Units are metres (:data:`UNITS`); world up is +Y (:data:`UP`). Loaders of Z-up sources
+  convert at load time.
+- Camera poses are ``cam_to_world`` 4×4 float64 in **OpenCV axes** (:data:`CAMERA_AXES`:
+  x right, y down, z forward). The single OpenCV ↔ OpenGL conversion is
+  ``sceneforge.cameras.opencv_to_opengl``.
+- Intrinsics ``K`` are 3×3 in pixels; pixel ``(row i, column j)`` covers
+  ``[j, j+1) × [i, i+1)``, so its centre is at integer + :data:`PIXEL_CENTRE` (0.5).
 - Depth is planar z-depth along the camera's forward axis, float32 metres.
   **NaN means "no surface in this layer"**, never 0 or inf.
+- Layers: :data:`LAYER_NAMES` (D1..D5) and the index tuples after it say which layers
+  are objects, which carry a class or an instance, and which support each mask.
+- The overhead camera's pixel mapping: :func:`overhead_pixel` and
+  :func:`overhead_pixel_centre` (used by ``overhead.OverheadCamera`` and the EFT).
 - Labels are NYU40 class ids (1..40, 0 = void). The table below is the only copy.
 - Room-envelope ("background") categories and the categories dropped at load time
   are decided by :func:`is_envelope` and :func:`is_dropped` only.
+- Every tolerance is a field of :data:`tol`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 #: NYU40 class names, index = class id (official numbering; 0 = void).
 NYU40_NAMES: tuple[str, ...] = (
@@ -52,6 +64,28 @@ DROPPED_NAMES: frozenset[str] = frozenset({"person", "plant"})
 
 #: Order of the frontal depth layers in every array with a layer axis.
 LAYER_NAMES: tuple[str, ...] = ("D1", "D2", "D3", "D4", "D5")
+#: The object layers D1..D4: entry and exit of the first object on a ray, then of the next.
+OBJECT_LAYERS: tuple[int, ...] = (0, 1, 2, 3)
+#: (entry, exit) layer of each object a ray meets: (D1, D2), then (D3, D4).
+OBJECT_SEGMENTS: tuple[tuple[int, int], ...] = ((0, 1), (2, 3))
+#: The entry layers D1, D3: they name the instance of their segment (``instance`` arrays).
+FRONT_LAYERS: tuple[int, ...] = (0, 2)
+#: The envelope layer D5, the first room-envelope surface on a ray.
+ENVELOPE_LAYER: int = 4
+#: The layers whose surface's NYU40 class is stored (``category`` arrays): D1, D3, D5.
+CLASS_LAYERS: tuple[int, ...] = (*FRONT_LAYERS, ENVELOPE_LAYER)
+#: Per layer, the layer whose support is its mask: M1 = M2 = finite D1, M3 = M4 = finite D3,
+#: M5 = finite D5 (SPEC §4.4).
+MASK_LAYERS: tuple[int, ...] = (0, 0, 2, 2, 4)
+
+#: Length unit of every coordinate and depth.
+UNITS = "metres"
+#: World up axis (SPEC §1); Z-up sources are converted at load time.
+UP = "+Y"
+#: Camera axes of every pose and camera frame (OpenCV); poses are ``cam_to_world``.
+CAMERA_AXES: dict[str, str] = {"x": "right", "y": "down", "z": "forward"}
+#: Offset of a pixel's centre from its integer index, in pixels.
+PIXEL_CENTRE = 0.5
 
 
 def nyu40_id(name: str) -> int | None:
@@ -88,7 +122,7 @@ def is_dropped(category: int, label: str | None = None) -> bool:
 
 @dataclass(frozen=True)
 class Tolerances:
-    """Every geometric tolerance of the project, in metres."""
+    """Every tolerance of the project: metres unless a field says otherwise."""
 
     #: hits of the same instance closer than this along a ray count once (SPEC §4)
     same_instance_hit: float = 1e-4
@@ -100,6 +134,35 @@ class Tolerances:
     behind_envelope: float = 0.1
     #: triangles with less area than this (m²) are degenerate and dropped at load time
     degenerate_area: float = 1e-12
+    #: a pose's rotation R is orthonormal when RᵀR is the identity to this (plus numpy's
+    #: default relative 1e-5, as ``np.isclose``), unitless. Cameras are built and stores
+    #: validated with it: a pose a valid store holds must load as a Camera. Poses made by
+    #: ``cameras.pose_from_view`` are orthonormal to ~1e-15, float32-rounded ones to ~1e-7.
+    rotation: float = 1e-6
+    #: depths are stored as float32 (an ulp is ~1e-6 m at 10 m): checks of the layer order
+    #: on a store's depths allow this much
+    stored_depth: float = 1e-5
+    #: a sampled eye is above the floor when the floor hit straight below it is at eye
+    #: height to within this (the eye is placed at eye height over a floor triangle)
+    eye_above_floor: float = 1e-3
+    #: a view direction and an up vector are parallel (no roll can be defined) when the
+    #: sine of their angle is below this, unitless
+    parallel: float = 1e-9
+    #: a view direction whose horizontal part is shorter than this (unit vector) looks
+    #: straight up or down and has no heading for the overhead camera, unitless
+    horizontal_view: float = 1e-6
+    #: the EFT's clipping (Liang–Barsky) treats a segment as parallel to a clip plane when
+    #: its rate of change across the plane is below this (per metre of planar depth)
+    clip_slope: float = 1e-12
+    #: the reference ray tracer: barycentric slack, so that a ray through a shared edge
+    #: hits both faces instead of neither, unitless
+    ray_edge: float = 1e-12
+    #: the reference ray tracer: a ray lies in a triangle's plane (no hit) when the sine of
+    #: their angle is below this, unitless
+    ray_parallel: float = 1e-12
+    #: the reference ray tracer: leaf bounding boxes grow by this so that touching rays
+    #: are never culled
+    leaf_pad: float = 1e-6
 
 
 tol = Tolerances()
@@ -112,3 +175,48 @@ def nyu40_table() -> list[dict]:
         for i, n in enumerate(NYU40_NAMES)
     ]
 
+
+def overhead_pixel(xy, half_extent, resolution):
+    """Overhead-camera coordinates → continuous pixel coordinates of the overhead image.
+
+    The overhead camera is orthographic (OpenCV axes, z straight down) and sees the square
+    ``[-half_extent, half_extent]²`` of its x, y plane on ``resolution × resolution``
+    pixels: ``(u, v) = (xy / half_extent + 1) · resolution / 2``, and the point falls in
+    pixel ``(row, col) = (floor(v), floor(u))``. The one definition for numpy arrays and
+    torch tensors alike (``overhead.OverheadCamera.project`` and the EFT's
+    ``point_hits`` / ``segment_pairs``; ``tests/test_eft.py`` pins them to each other).
+
+    xy          : (..., 2) float  ``(x, y)`` in the overhead camera frame, metres
+    half_extent : float or (..., 1) float  metres
+    Returns (..., 2) float ``(u, v)``.
+    """
+    return (xy / half_extent + 1.0) * (0.5 * resolution)
+
+
+def overhead_pixel_centre(index, half_extent, resolution):
+    """Overhead-camera x (or y) of the centres of pixel columns (or rows) ``index``: the
+    inverse of :func:`overhead_pixel` at integer + :data:`PIXEL_CENTRE`.
+
+    index : (n,) int or float array (numpy or torch); half_extent : float or broadcastable
+    Returns (n,) float, metres.
+    """
+    return ((index + PIXEL_CENTRE) / resolution * 2.0 - 1.0) * half_extent
+
+
+def record() -> dict:
+    """The conventions as JSON-ready data, built from this module's constants: a store's
+    ``conventions`` attribute (``schemas/store.schema.json``)."""
+    return {
+        "units": UNITS,
+        "up": UP,
+        "camera_axes": {"convention": "OpenCV", **CAMERA_AXES, "pose": "cam_to_world"},
+        "pixel_centres": {"offset": PIXEL_CENTRE, "intrinsics": "K, pixels"},
+        "depth": {"kind": "planar", "along": "camera z", "dtype": "float32", "no_surface": "NaN"},
+        "layers": list(LAYER_NAMES),
+        "object_layers": [LAYER_NAMES[k] for k in OBJECT_LAYERS],
+        "envelope_layer": LAYER_NAMES[ENVELOPE_LAYER],
+        "category_layers": [LAYER_NAMES[k] for k in CLASS_LAYERS],
+        "instance_layers": [LAYER_NAMES[k] for k in FRONT_LAYERS],
+        "labels": {"table": "nyu40", "void": 0},
+        "tolerances": asdict(tol),
+    }

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from .conventions import tol
+from .conventions import ENVELOPE_LAYER, tol
 
 if TYPE_CHECKING:
     from .cameras import Camera
@@ -314,7 +314,7 @@ def _unique_rows_lexsort(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[new], inverse
 
 
-#: Bits of the per-vertex code of :func:`_settle`: inside plane p (bit p, within the clip
+#: Bits of the per-vertex code of :func:`_settle_fast`: inside plane p (bit p, within the clip
 #: tolerance), and not behind the envelope.
 _INSIDE, _FRONT = 0b11111, 0b100000
 #: Bytes 0/1 of a uint64 times this, shifted right by 56: byte k's bit becomes bit k (the
@@ -323,7 +323,7 @@ _PACK = np.uint64(0x0102040810204080)
 
 
 class _Soup(NamedTuple):
-    """The faces of one mesh's instances, sorted by :func:`_settle`; face arrays index
+    """The faces of one mesh's instances, sorted by :func:`_settle_fast`; face arrays index
     ``corners``."""
 
     vertices: np.ndarray  # (n, 3) float64  the instances' vertices, stacked
@@ -335,24 +335,32 @@ class _Soup(NamedTuple):
     cross: np.ndarray     # (c,) int64      faces that may cross a plane (the rest are outside)
 
 
-def _settle(house: "House", ids, planes: np.ndarray, camera: "Camera", lens: tuple, limit: np.ndarray,
+def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens: tuple, limit: np.ndarray,
             tolerance: float) -> _Soup:
-    """The faces of instances ``ids`` sorted by tests on their vertices.
+    """The faces of instances ``ids`` sorted by tests on their vertices (the fast kernel).
 
-    On a big house nearly every face of a view's mesh is wholly inside the frustum and in
-    front of the envelope (it comes out as it is) or wholly outside one plane (it goes).
-    Both are settled here by testing each vertex once (plane distances, projection, depth
-    against the envelope, packed into one byte) and combining the bytes of each face's
-    three corners, with no per-face geometry (view_mesh 7 times faster on 1 M faces).
-    Only faces that cross a plane or have a corner behind the envelope go on to
-    :func:`clip_triangles` and :func:`drop_behind_envelope`.
+    The plain algorithm it computes: clip every face of the instances against the planes
+    (:func:`clip_triangles`) and test every piece against the envelope
+    (:func:`drop_behind_envelope`). A face wholly inside every plane and with no corner
+    behind the envelope comes out of both as it is (``kept``); one wholly inside with a
+    corner behind goes to the envelope test uncut (``hidden``); one wholly outside a plane
+    comes out of neither; the rest may cross a plane (``cross``). ``plain_clipped_mesh`` in
+    tests/test_frustum.py is that plain pipeline, and
+    ``test_clipped_meshes_of_toy_houses_match_the_plain_pipeline`` (with the occluded-view
+    tests next to it) holds :func:`_clipped_meshes`, and so this, to it bit for bit.
 
-    Those compute the same matmul rows per corner from the same numbers (a row does not
-    depend on the rest of the batch) and project elementwise, so the decisions are theirs
-    bit for bit; a test pins this against the plain pipeline. Should a BLAS round a row
-    differently, a face wrongly found outside here could only lie within the tolerance of
-    the plane: a corner inside only within the tolerance has a negative distance, and the
-    cuts towards it collapse onto it, leaving no area.
+    Why it is fast: on a big house nearly every face of a view's mesh is kept or dropped
+    whole. Both are settled here by testing each vertex once (plane distances, projection,
+    depth against the envelope, packed into one byte) and combining the bytes of each
+    face's three corners, with no per-face geometry (view_mesh 7 times faster on 1 M
+    faces).
+
+    Those plain steps compute the same matmul rows per corner from the same numbers (a row
+    does not depend on the rest of the batch) and project elementwise, so the decisions
+    are theirs bit for bit. Should a BLAS round a row differently, a face wrongly found
+    outside here could only lie within the tolerance of the plane: a corner inside only
+    within the tolerance has a negative distance, and the cuts towards it collapse onto
+    it, leaving no area.
     """
     instances = [house.instances[int(i)] for i in ids]
     n_vertices = np.array([len(inst.vertices) for inst in instances], dtype=np.int64)
@@ -550,18 +558,29 @@ def drop_behind_envelope(
     state[:3] = world.transpose(2, 1, 0)
     state[3:6] = ((world - centre) @ rot).transpose(2, 1, 0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        kept, kept_src = _refine(state, lens, limit, config.max_edge_pixels)
+        kept, kept_src = _refine_fast(state, lens, limit, config.max_edge_pixels)
     return np.ascontiguousarray(np.concatenate(kept, axis=2).transpose(2, 1, 0)), np.concatenate(kept_src)
 
 
-def _refine(state: np.ndarray, lens: tuple, limit: np.ndarray, max_edge: float | None):
-    """The loop of :func:`drop_behind_envelope` on ``state`` (9, 3, m): lists of the kept
-    world triangles (3, 3, k) (field, corner, face) and of their sources (k,) int64.
+def _refine_fast(state: np.ndarray, lens: tuple, limit: np.ndarray, max_edge: float | None):
+    """The loop of :func:`drop_behind_envelope` on ``state`` (9, 3, m) (the fast kernel):
+    lists of the kept world triangles (3, 3, k) (field, corner, face) and of their
+    sources (k,) int64.
 
-    A dozen rounds over a few hundred to a few thousand faces each: the cost is about half
-    the number of numpy calls per round and half the data they move, so each round makes
-    few calls, builds the next round's faces with a single gather and projects each new
-    point once.
+    The plain algorithm it computes, round by round: project every corner; keep the faces
+    with no corner more than ``behind_envelope`` behind D5 at its pixel; of the others,
+    drop those wholly hidden (every corner, edge midpoint and the centroid behind) and
+    those whose longest edge is at most ``max_edge`` pixels; bisect the rest at the
+    midpoint of their first longest edge and test the halves in the next round (all first
+    halves, then all second halves). ``plain_drop_behind_envelope`` in tests/test_frustum.py
+    is that loop, and ``test_drop_behind_envelope_matches_the_plain_refinement_bit_for_bit``
+    and ``test_clipped_meshes_of_toy_houses_match_the_plain_pipeline`` hold this to it bit
+    for bit.
+
+    Why it is fast: a dozen rounds over a few hundred to a few thousand faces each cost
+    about half the number of numpy calls per round and half the data they move, so each
+    round makes few calls, builds the next round's faces with a single gather and projects
+    each new point once.
     """
     _project(state[3:6].reshape(3, -1), state[6:].reshape(3, -1), lens, limit)
     src = np.arange(state.shape[2], dtype=np.int64)
@@ -642,7 +661,7 @@ def _refine(state: np.ndarray, lens: tuple, limit: np.ndarray, max_edge: float |
 def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMeshConfig) -> list[ClippedMesh]:
     """The :class:`ClippedMesh` of each list of instance ids in ``id_lists``.
 
-    Per mesh, :func:`_settle` keeps the faces wholly inside the frustum and in front of the
+    Per mesh, :func:`_settle_fast` keeps the faces wholly inside the frustum and in front of the
     envelope and drops those wholly outside a plane. The rest are clipped and refined in
     one batch for all meshes: those steps cost a number of numpy calls per plane or per
     round, nearly regardless of how many triangles they carry. Every step keeps the order
@@ -652,7 +671,7 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
     those keep settled faces as they are, and in order, ahead of any cut or refined piece.
     """
     lens = _lens(camera, np.shape(d5))
-    soups = [_settle(house, ids, planes, camera, lens, limit, config.clip_tolerance) for ids in id_lists]
+    soups = [_settle_fast(house, ids, planes, camera, lens, limit, config.clip_tolerance) for ids in id_lists]
     crossing = [soup.vertices[soup.corners[soup.cross]] for soup in soups]
     first = np.cumsum([0] + [len(c) for c in crossing])  # of each mesh's crossing faces
     cut, cut_src = clip_triangles(np.concatenate(crossing), planes, config.clip_tolerance)
@@ -683,12 +702,12 @@ def view_mesh(
     Objects: the instances that fill a frontal layer (ids in ``layers.instance``).
     Envelope: every envelope instance of the house. Both are clipped to the frustum
     (:func:`frustum_planes`), then faces with any vertex projecting more than
-    ``config.behind_envelope`` behind ``D5`` (``layers.depth[4]``) at its pixel are
+    ``config.behind_envelope`` behind ``D5`` (``layers.depth[ENVELOPE_LAYER]``) at its pixel are
     dropped, after refining the faces that fail (:func:`drop_behind_envelope`); a NaN
     ``D5`` pixel drops nothing.
     """
     config = config or ViewMeshConfig()
-    d5 = np.asarray(layers.depth[4])
+    d5 = np.asarray(layers.depth[ENVELOPE_LAYER])
     if d5.shape != (camera.height, camera.width):
         raise ValueError(
             f"layers are {d5.shape[1]}×{d5.shape[0]} pixels but the camera is "

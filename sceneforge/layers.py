@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .conventions import tol
+from .conventions import CLASS_LAYERS, ENVELOPE_LAYER, MASK_LAYERS, tol
 
 if TYPE_CHECKING:
     from .cameras import Camera
@@ -35,8 +35,10 @@ class Layers:
     """Ground truth of one view. Layer order is ``conventions.LAYER_NAMES`` (D1..D5).
 
     depth    : (5, H, W) float32  planar depth in metres of D1..D5; NaN = no surface
-    category : (3, H, W) uint8    NYU40 class of the surface of D1, D3 and D5; 0 where none
-    instance : (2, H, W) int32    house instance index of D1 and D3; -1 where none
+    category : (3, H, W) uint8    NYU40 class of the surface of ``conventions.CLASS_LAYERS``
+               (D1, D3, D5); 0 where none
+    instance : (2, H, W) int32    house instance index of ``conventions.FRONT_LAYERS`` (D1,
+               D3); -1 where none
     normal   : (3, H, W) float32  unit normal of the first surface hit, camera frame (OpenCV
                axes), turned to face the camera; NaN where the ray hits nothing
     """
@@ -53,14 +55,18 @@ class Layers:
     @property
     def masks(self) -> np.ndarray:
         """(5, H, W) bool support of each layer: M1 = M2 = finite D1, M3 = M4 = finite D3,
-        M5 = finite D5 (SPEC §4.4)."""
-        finite = np.isfinite(self.depth)
-        return np.stack([finite[0], finite[0], finite[2], finite[2], finite[4]])
+        M5 = finite D5 (SPEC §4.4, ``conventions.MASK_LAYERS``)."""
+        return np.isfinite(self.depth)[list(MASK_LAYERS)]
+
+    @property
+    def envelope_category(self) -> np.ndarray:
+        """(H, W) uint8 NYU40 class of the D5 surface; 0 where none."""
+        return self.category[CLASS_LAYERS.index(ENVELOPE_LAYER)]
 
     @property
     def traditional_depth(self) -> np.ndarray:
         """(H, W) float32 depth of the first surface: D1, or D5 where there is no object."""
-        return np.where(np.isfinite(self.depth[0]), self.depth[0], self.depth[4])
+        return np.where(np.isfinite(self.depth[0]), self.depth[0], self.depth[ENVELOPE_LAYER])
 
 
 def instance_labels(house: "House") -> tuple[np.ndarray, np.ndarray]:
@@ -183,8 +189,8 @@ def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_catego
         return r
 
     # D5: the closing hit (NaN distance where none: NaN depth; instance -1: the appended 0)
-    depth[4] = closing_t * depth_scale
-    category[2] = np.append(inst_category, 0)[closing_inst]
+    depth[ENVELOPE_LAYER] = closing_t * depth_scale
+    category[CLASS_LAYERS.index(ENVELOPE_LAYER)] = np.append(inst_category, 0)[closing_inst]
 
     # D1 and rule 2: the first object hit of a ray is visible by definition
     first = _first_per_ray(np.arange(len(ray)), ray)

@@ -25,15 +25,25 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .conventions import NYU40_IDS, in_classes
+from .conventions import (
+    ENVELOPE_LAYER,
+    NYU40_IDS,
+    OBJECT_SEGMENTS,
+    in_classes,
+    overhead_pixel,
+    overhead_pixel_centre,
+    tol,
+)
 from .errors import MissingDependencyError, SceneforgeError
 from .layers import Layers, instance_labels, layers_from_frontal
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     import matplotlib.figure
 
-    from .cameras import Camera
-    from .houses import House
+    from .cameras import Camera, CameraSamplerConfig, SamplerReport
+    from .houses import House, LoadOptions
 
 CANDIDATE_NAMES: tuple[str, ...] = ("depth_statistics", "envelope_frustum", "majority_room")
 FLOOR = NYU40_IDS["floor"]
@@ -139,7 +149,7 @@ def gravity_frame(camera: "Camera") -> GravityFrame:
     T = np.asarray(camera.cam_to_world, dtype=np.float64)
     view = T[:3, 2] / np.linalg.norm(T[:3, 2])
     flat = np.array([view[0], 0.0, view[2]])
-    if np.linalg.norm(flat) < 1e-6:
+    if np.linalg.norm(flat) < tol.horizontal_view:
         raise SceneforgeError(
             "the frontal camera looks straight up or down: its view direction has no "
             "horizontal part to align the overhead camera with"
@@ -244,7 +254,7 @@ def depth_statistics_box(objects: np.ndarray, config: OverheadConfig) -> Candida
     pts = np.asarray(objects, dtype=np.float64).reshape(-1, 3)
     if len(pts) < config.stats_min_points:
         return _rejected(name, f"{len(pts)} object points < {config.stats_min_points}", len(pts))
-    # Per column, without copying them out: frontal_points' columns are contiguous.
+    # Per column, without copying them out: frontal_points_fast's columns are contiguous.
     right, forward = pts[:, 0], pts[:, 2]
     mean = np.array([right.mean(), forward.mean()])
     std = np.array([right.std(), forward.std()])
@@ -305,7 +315,7 @@ def majority_room_box(
     room = room_ids[code]
     pts = np.asarray(objects, dtype=np.float64).reshape(-1, 3)
     # The distances are only needed for the winner's points: select them first, per
-    # column (contiguous in frontal_points' objects).
+    # column (contiguous in frontal_points_fast's objects).
     sel = np.flatnonzero((np.asarray(object_room) == code) & ~np.asarray(object_excluded, bool))
     x, y, z = (pts[:, axis].take(sel) for axis in range(3))
     dist = x * x
@@ -391,7 +401,7 @@ class OverheadCamera:
     def _pixel_centres(self) -> np.ndarray:
         """(resolution,) float64 camera-plane coordinate of the pixel centres along either
         image axis (x along a row, y down a column)."""
-        return ((np.arange(self.resolution) + 0.5) / self.resolution * 2.0 - 1.0) * self.half_extent
+        return overhead_pixel_centre(np.arange(self.resolution), self.half_extent, self.resolution)
 
     def rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Parallel rays through the pixel centres, row-major.
@@ -414,11 +424,11 @@ class OverheadCamera:
         return origins, directions, depth_scale
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (n, 3) → pixel coordinates uv (n, 2) and depth below the camera z (n,)."""
+        """World points (n, 3) → pixel coordinates uv (n, 2) (:func:`~sceneforge.conventions.overhead_pixel`)
+        and depth below the camera z (n,)."""
         R, t = self.cam_to_world[:3, :3], self.cam_to_world[:3, 3]
         p = (np.asarray(points_world, dtype=np.float64) - t) @ R
-        uv = (p[:, :2] / self.half_extent + 1.0) * 0.5 * self.resolution
-        return uv, p[:, 2]
+        return overhead_pixel(p[:, :2], self.half_extent, self.resolution), p[:, 2]
 
 
 def level_floor_y(house: "House", y: float) -> float:
@@ -470,18 +480,25 @@ def _take_columns(table: np.ndarray, idx: np.ndarray, out: np.ndarray) -> None:
         table[axis].take(idx, out=out[axis], mode="clip")
 
 
-def frontal_points(
+def frontal_points_fast(
     house: "House", camera: "Camera", layers: Layers, frame: GravityFrame, config: OverheadConfig
 ) -> tuple[FrontalPoints, float]:
     """Collect the heuristics' inputs from a frontal view, and the view's floor height.
 
-    The floor height is the median world height of the D5 pixels whose class is floor,
-    or the house's storey floor under the camera when the view shows no floor.
+    The plain algorithm (SPEC §6), which ``plain_frontal_points`` in tests/test_overhead.py
+    spells out and ``test_frontal_points_fast_equals_the_plain_version_on_toy_views`` holds
+    this to bit for bit: every finite pixel of D1..D4 gives the point of its ray at that
+    planar depth, in the gravity frame, with the room and the exclusion of its layer's
+    instance (D1 and D2: the D1 instance, D3 and D4: the D3 one); D5's finite pixels give
+    their planar depths and heights; the top is the highest point of D1, D2 and D5; each
+    pixel with a D1 instance votes for that instance's room. The floor height is the
+    median world height of the D5 pixels whose class is floor, or the house's storey
+    floor under the camera when the view shows no floor.
 
-    Every pass over a layer's pixels costs, so the points are built straight in the frame
-    from one per-view table (:func:`_frame_rays`) into one preallocated array, D2 and D4
-    reuse the gathers of D1 and D3 when they have the same pixels (as traced layers do),
-    and rooms are integer codes counted with ``bincount``.
+    The fast kernel: every pass over a layer's pixels costs, so the points are built
+    straight in the frame from one per-view table (:func:`_frame_rays`) into one
+    preallocated array, D2 and D4 reuse the gathers of D1 and D3 when they have the same
+    pixels (as traced layers do), and rooms are integer codes counted with ``bincount``.
     """
     if layers.shape != camera.shape:
         raise ValueError(f"layers are {layers.shape} pixels but the camera is {camera.shape} (H, W)")
@@ -494,17 +511,19 @@ def frontal_points(
     depth = np.asarray(layers.depth).reshape(5, H * W)
     instance = np.asarray(layers.instance).reshape(2, H * W)
     finite = np.isfinite(depth)
-    pixels = [np.flatnonzero(finite[layer]) for layer in (0, 2, 4)]
-    # D2 is usually finite where D1 is, and D4 where D3 is: gather their rays once.
-    for layer in (1, 3):
-        same = np.array_equal(finite[layer], finite[layer - 1])
-        pixels.insert(layer, pixels[layer - 1] if same else np.flatnonzero(finite[layer]))
+    pixels = {}
+    for front, back in OBJECT_SEGMENTS:
+        pixels[front] = np.flatnonzero(finite[front])
+        # D2 is usually finite where D1 is, and D4 where D3 is: gather their rays once.
+        same = np.array_equal(finite[back], finite[front])
+        pixels[back] = pixels[front] if same else np.flatnonzero(finite[back])
+    pixels[ENVELOPE_LAYER] = np.flatnonzero(finite[ENVELOPE_LAYER])
 
-    n = sum(len(p) for p in pixels[:4])
+    n = sum(len(pixels[layer]) for segment in OBJECT_SEGMENTS for layer in segment)
     objects = np.empty((3, n))  # returned transposed: (n, 3) with contiguous columns
     inst = np.empty(n, dtype=instance.dtype)
     start = 0
-    for front, back, inst_layer in ((0, 1, 0), (2, 3, 1)):
+    for inst_layer, (front, back) in enumerate(OBJECT_SEGMENTS):
         i_front, i_back = pixels[front], pixels[back]
         mid = start + len(i_front)
         end = mid + len(i_back)
@@ -522,20 +541,21 @@ def frontal_points(
         start = end
     if offset.any():
         objects += offset[:, None]
-    env_idx = pixels[4]
-    env_category = np.asarray(layers.category[2]).reshape(H * W)
+    env_idx = pixels[ENVELOPE_LAYER]
+    env_category = np.asarray(layers.envelope_category).reshape(H * W)
     if len(env_idx) == H * W:  # the usual case: D5 everywhere, no gathers
-        envelope_z = depth[4].astype(np.float64)
+        envelope_z = depth[ENVELOPE_LAYER].astype(np.float64)
         env_up = np.multiply(rays[1], envelope_z, out=rays[1])  # the table is used up
     else:
-        envelope_z = depth[4].take(env_idx).astype(np.float64)
+        envelope_z = depth[ENVELOPE_LAYER].take(env_idx).astype(np.float64)
         env_up = rays[1].take(env_idx)
         env_up *= envelope_z
         env_category = env_category.take(env_idx)
     if offset[1]:
         env_up += offset[1]
 
-    n12 = len(pixels[0]) + len(pixels[1])
+    d1, d2 = OBJECT_SEGMENTS[0]
+    n12 = len(pixels[d1]) + len(pixels[d2])
     tops = [t for t in (objects[1, :n12], env_up) if len(t)]
     if not tops:
         raise SceneforgeError("the frontal view sees no surface: cannot place an overhead camera")
@@ -543,7 +563,7 @@ def frontal_points(
     object_room = inst_room.take(inst)
     # Visible object pixels (D1 instance >= 0) vote for their instance's room. Usually they
     # are all finite D1 pixels, whose rooms are at hand; else every pixel's room is looked up.
-    n1 = len(pixels[0])
+    n1 = len(pixels[d1])
     if np.count_nonzero(instance[0] >= 0) == np.count_nonzero(inst[:n1] >= 0):
         voters = object_room[:n1]
     else:
@@ -608,7 +628,7 @@ def overhead_camera_and_points(
     """The overhead camera of a frontal view and the frontal points it was chosen from."""
     config = config or OverheadConfig()
     frame = gravity_frame(camera)
-    points, floor_y = frontal_points(house, camera, layers, frame, config)
+    points, floor_y = frontal_points_fast(house, camera, layers, frame, config)
     tan_half_fov = float(np.tan(camera.half_fov[0]))
     return place_overhead_camera(frame, points, tan_half_fov, floor_y, config), points
 
@@ -670,8 +690,82 @@ def overhead_truth(
     top = float(camera.cam_to_world[1, 3])
     height = (top - layers.depth[0].astype(np.float64) - camera.floor_y).astype(np.float32)
     first = np.isfinite(layers.depth[0])
-    category = np.where(first, layers.category[0], layers.category[2]).astype(np.uint8)
+    category = np.where(first, layers.category[0], layers.envelope_category).astype(np.uint8)
     return OverheadTruth(layers, height, category, camera.floor_y)
+
+
+# ------------------------------------------------------------------------- explain
+
+
+@dataclass(frozen=True, eq=False)
+class ViewExplanation:
+    """How the overhead camera of one frontal view was chosen.
+
+    index    : the view's index among the house's cameras
+    camera   : the frontal camera
+    overhead : the chosen overhead camera, with its three candidate boxes
+    points   : the frontal points the boxes were built from (what :func:`plot_candidates` draws)
+    """
+
+    index: int
+    camera: "Camera"
+    overhead: OverheadCamera
+    points: FrontalPoints
+
+
+@dataclass(frozen=True, eq=False)
+class OverheadExplanation:
+    """The overhead cameras of a house's views, and how its cameras were found.
+
+    views   : one explanation per view asked for
+    cameras : every camera of the house (read or sampled)
+    sampled : the sampler's report (None when the cameras were read from a file); it may
+              have found fewer cameras than it was asked for
+    """
+
+    views: list[ViewExplanation]
+    cameras: list["Camera"]
+    sampled: "SamplerReport | None" = None
+
+
+def explain_overhead_cameras(
+    house: "str | Path",
+    cameras: "str | Path | int",
+    *,
+    options: "LoadOptions | None" = None,
+    sampler: "CameraSamplerConfig | None" = None,
+    seed: int = 0,
+    config: OverheadConfig | None = None,
+    view_index: int | None = None,
+) -> OverheadExplanation:
+    """Load ``house``, get its cameras (the PBRS camera file ``cameras``, or that many
+    cameras sampled from ``np.random.default_rng(seed)``), trace each view's frontal layers
+    and place its overhead camera; only view ``view_index`` when given.
+
+    Raises :class:`SceneforgeError` for a house or camera file that cannot be read, a view
+    index beyond the cameras, or a view the overhead camera cannot be placed for.
+    """
+    from .cameras import CameraSamplerConfig, read_pbrs_cameras, sample_cameras
+    from .houses import load
+    from .layers import frontal_layers
+    from .raytrace import HouseTracer
+
+    config, sampler = config or OverheadConfig(), sampler or CameraSamplerConfig()
+    h = load(house, options)
+    tracer = HouseTracer(h)
+    report = None
+    if isinstance(cameras, int):
+        found, report = sample_cameras(h, cameras, np.random.default_rng(seed), sampler, tracer)
+    else:
+        found = read_pbrs_cameras(cameras, sampler.width, sampler.height)
+    if view_index is not None and not 0 <= view_index < len(found):
+        raise SceneforgeError(f"view {view_index}: {h.id} has {len(found)} views")
+    views = []
+    for i in range(len(found)) if view_index is None else [view_index]:
+        layers = frontal_layers(h, found[i], tracer)
+        overhead, points = overhead_camera_and_points(h, found[i], layers, config)
+        views.append(ViewExplanation(i, found[i], overhead, points))
+    return OverheadExplanation(views, found, report)
 
 
 # ---------------------------------------------------------------------------- plot

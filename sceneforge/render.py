@@ -64,7 +64,7 @@ INSTALL_EGL = "sudo apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri"
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """How rendered views look. Field docs double as CLI help."""
+    """How rendered views look. Field docs become the config schema's descriptions."""
 
     #: ambient light: the fraction of its base colour that every surface shows unlit
     ambient: float = 0.3

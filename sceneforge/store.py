@@ -1,8 +1,9 @@
 """The dataset store: a zarr v3 group written by ``sceneforge render`` (SPEC §9).
 
 The layout is defined once, in ``schemas/store.schema.json``: every array's path, dtype,
-shape (``x-dims``), fill value and meaning. This module reads that table (:func:`layout`)
-to create, fill, read and check stores, so writer, reader and validator cannot disagree.
+shape (``x-dims``), fill value, source (``x-source``) and meaning. This module reads that
+table (:func:`layout`) to create, fill, read and check stores, so writer, reader and
+validator cannot disagree.
 
 - **Per-view arrays** have the view index first, one view per chunk, and
   ``config.store.views_per_shard`` views per shard file (zarr's sharding codec), each chunk
@@ -13,19 +14,27 @@ to create, fill, read and check stores, so writer, reader and validator cannot d
 - **Group attributes** hold the schema and package versions, the resolved config, the seed,
   the conventions, the NYU40 table, per-house provenance and the failure log.
 
-:func:`open_store` reads a store with numpy only (no PyTorch). :func:`validate_store` checks
-one against the schema and for internal consistency.
+This module is the only one that touches zarr. :class:`StoreWriter` writes a store (``sceneforge
+render`` and ``sceneforge predict`` both go through it); :func:`open_store` reads one with
+numpy only (no PyTorch); :func:`validate_store` checks one against the schema and for
+internal consistency; :func:`array_digests` fingerprints its contents.
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
+import uuid
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import lru_cache
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
+from . import conventions
 from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
 from .errors import MissingDependencyError, SceneforgeError
 
@@ -56,6 +65,8 @@ class ArraySpec:
     per_view    : the first axis is the view index (one view per chunk, sharded)
     optional    : the config flag that switches the array on, or None when always present
     description : what it holds
+    source      : per-view arrays: where a written view's values come from, an attribute
+                  path on :func:`view_arrays`' arguments (``gt.layers.depth``, ``house_id``)
     """
 
     name: str
@@ -65,6 +76,7 @@ class ArraySpec:
     per_view: bool
     optional: str | None
     description: str
+    source: str | None = None
 
     def shape(self, sizes: dict[str, int]) -> tuple[int, ...]:
         """The concrete shape for ``sizes`` (``{"N": .., "H": .., ...}``)."""
@@ -99,6 +111,7 @@ def layout() -> dict[str, ArraySpec]:
             per_view=p["$ref"].endswith("/per_view"),
             optional=p.get("x-optional"),
             description=p["description"],
+            source=p.get("x-source"),
         )
         for name, p in props.items()
     }
@@ -126,18 +139,9 @@ def sizes_of(config: "DatasetConfig", n_views: int) -> dict[str, int]:
 
 
 def conventions_attrs() -> dict:
-    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes."""
-    return {
-        "units": "metres",
-        "up": "+Y",
-        "camera_axes": "OpenCV: x right, y down, z forward; poses are cam_to_world",
-        "pixel_centres": "integer + 0.5; K in pixels",
-        "depth": "planar z-depth along the camera's forward axis, float32 metres; NaN = no surface",
-        "layers": list(LAYER_NAMES),
-        "category_layers": [LAYER_NAMES[0], LAYER_NAMES[2], LAYER_NAMES[4]],
-        "instance_layers": [LAYER_NAMES[0], LAYER_NAMES[2]],
-        "tolerances": asdict(tol),
-    }
+    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes:
+    :func:`sceneforge.conventions.record`, built from the constants that define them."""
+    return conventions.record()
 
 
 def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dict:
@@ -181,40 +185,36 @@ def create_arrays(group: "zarr.Group", config: "DatasetConfig", n_views: int) ->
         )
 
 
+def _source(root, path: str):
+    """The value at attribute ``path`` (an :attr:`ArraySpec.source`) of ``root``; None when absent."""
+    for part in path.split("."):
+        root = getattr(root, part, None)
+    return root
+
+
 def view_arrays(gt: "ViewGroundTruth", rgb: np.ndarray | None, house_id: str, camera_id: int,
                 config: "DatasetConfig") -> dict[str, np.ndarray]:
-    """One view's entries of every per-view array (shapes without the view axis)."""
-    top = gt.overhead_camera
-    out = {
-        "depth": gt.layers.depth,
-        "category": gt.layers.category,
-        "instance": gt.layers.instance,
-        "overhead_depth": gt.overhead.layers.depth,
-        "overhead_height": gt.overhead.height,
-        "overhead_category": gt.overhead.category,
-        "K": gt.camera.K,
-        "cam_to_world": gt.camera.cam_to_world,
-        "overhead_cam_to_world": top.cam_to_world,
-        "overhead_params": top.params,
-        "overhead_extent": np.float64(top.half_extent),
-        "house_id": np.array(house_id, dtype=np.dtypes.StringDType()),
-        "camera_id": np.int32(camera_id),
-        "valid": np.bool_(True),
-    }
-    if config.rgb.enabled:
-        out["rgb"] = rgb
-    if config.store.normals:
-        out["normal"] = gt.layers.normal
-    return {k: np.asarray(v) for k, v in out.items()}
+    """One view's entries of every per-view array (shapes without the view axis), each taken
+    from where its layout entry's ``source`` says."""
+    view = SimpleNamespace(gt=gt, rgb=rgb, house_id=house_id, camera_id=camera_id, valid=True)
+    out = {}
+    for spec in array_specs(config, per_view=True):
+        value = _source(view, spec.source)
+        if value is None:
+            raise ValueError(f"{spec.name}: the view has no {spec.source}")
+        out[spec.name] = np.asarray(value, dtype=spec.numpy_dtype)
+    return out
 
 
 def blank_view(camera: "Camera", house_id: str, camera_id: int, config: "DatasetConfig") -> dict[str, np.ndarray]:
-    """The entries of a view whose ground truth failed: fill values, its camera and ids."""
+    """The entries of a view whose ground truth failed: fill values, except what is known
+    without it (the frontal camera and the ids)."""
+    known = SimpleNamespace(gt=SimpleNamespace(camera=camera), house_id=house_id, camera_id=camera_id)
     sizes = sizes_of(config, 1)
-    out = {s.name: s.blank(sizes) for s in array_specs(config, per_view=True)}
-    out["K"], out["cam_to_world"] = np.asarray(camera.K), np.asarray(camera.cam_to_world)
-    out["house_id"] = np.array(house_id, dtype=np.dtypes.StringDType())
-    out["camera_id"] = np.int32(camera_id)
+    out = {}
+    for spec in array_specs(config, per_view=True):
+        value = _source(known, spec.source)
+        out[spec.name] = spec.blank(sizes) if value is None else np.asarray(value, dtype=spec.numpy_dtype)
     return out
 
 
@@ -313,6 +313,175 @@ def mesh_part(meshes: list) -> dict[str, np.ndarray]:
     out = {key: np.concatenate(arrays) for key, arrays in part.items()}
     out["counts"] = counts
     return out
+
+
+class StoreWriter:
+    """The one writer of a store, at a local path or an fsspec URL.
+
+    ``create`` lays out the empty per-view arrays from the layout, ``write_shard`` fills one
+    shard of them (one writer per shard: shards can be written in any order, by any
+    process), ``write_meshes`` the ragged mesh arrays, and ``finalize`` records provenance
+    with ``complete: true``; :func:`open_store` reads the result.
+
+    Besides the arrays, a run may keep its own files in the store (``put``/``get`` by key,
+    e.g. the render pipeline's staging folder): ``put`` is atomic (a temporary file renamed
+    into place), so readers see all of a file or nothing.
+
+    url             : a local path or an fsspec URL (``memory://...``, ``s3://...``)
+    storage_options : passed to fsspec and zarr
+    """
+
+    def __init__(self, url: str, storage_options: dict | None = None):
+        try:
+            import fsspec
+        except ImportError as e:
+            raise MissingDependencyError("fsspec", "the dataset store", "pip install sceneforge[store]") from e
+
+        self.url = str(url)
+        self.storage_options = storage_options or {}
+        self.fs, root = fsspec.core.url_to_fs(self.url, **self.storage_options)
+        self.root = root.rstrip("/")
+        self.local = "file" in _protocols(self.fs)
+        #: what zarr opens, and what a writer in another process is given: an absolute path
+        #: for local files (zarr's LocalStore creates folders and writes atomically), else the URL
+        self.zarr_url = self.root if self.local else self.url
+        self._group = None
+        self._arrays: dict[str, "zarr.Array"] = {}
+
+    def __repr__(self) -> str:
+        return f"StoreWriter({self.url!r})"
+
+    # ------------------------------------------------------------------------ the arrays
+
+    def create(self, config: "DatasetConfig", houses_source: str, n_views: int, *, replace: bool = False) -> None:
+        """(Re)create every per-view array of ``n_views`` views, empty, and the attributes
+        known so far (:func:`base_attrs`, ``complete`` false).
+
+        replace : first remove whatever the location holds (else arrays are recreated in place)
+        """
+        group = self._open("w" if replace else "a")
+        create_arrays(group, config, n_views)
+        group.attrs.put(base_attrs(config, houses_source, n_views))
+        self._group, self._arrays = group, {}
+
+    def write_shard(self, shard: int, views: list[dict[str, np.ndarray]]) -> list[str]:
+        """Write the views of shard ``shard`` (views ``shard * views_per_shard, ...``, as
+        :func:`view_arrays` gives them) into every per-view array they hold.
+
+        The shard's files are removed first, so a shard torn by a kill is replaced, never
+        patched. Returns the keys of those files (for :meth:`sha256`).
+        """
+        arrays = {name: self._array(name) for name in views[0]}
+        keys = [shard_key(array, shard) for array in arrays.values()]
+        for key in keys:
+            self.rm(key)
+        start = shard * next(iter(arrays.values())).shards[0]
+        write_shard(arrays, start, views)
+        return keys
+
+    def write_meshes(self, config: "DatasetConfig", counts: np.ndarray, parts: Iterable[dict[str, np.ndarray]]) -> None:
+        """(Re)create and fill the ragged mesh arrays (see :func:`write_meshes`)."""
+        write_meshes(self._group_rw(), config, counts, parts)
+
+    def finalize(self, config: "DatasetConfig", houses_source: str, n_views: int, *, houses: list[dict],
+                 failures: list[dict], **extra) -> None:
+        """Mark the store complete: :func:`base_attrs` with ``complete: true``, the houses'
+        provenance, the failure log and ``extra`` attributes (e.g. ``prediction``); then
+        remove the temporary files of writes cut short."""
+        attrs = base_attrs(config, houses_source, n_views)
+        attrs.update(complete=True, houses=houses, failures=failures, **extra)
+        self._group_rw().attrs.put(attrs)
+        self.remove_partials()
+
+    def attrs(self) -> dict:
+        """The group attributes of the store there now."""
+        return self._open("r").attrs.asdict()
+
+    def _open(self, mode: str) -> "zarr.Group":
+        try:
+            import zarr
+        except ImportError as e:
+            raise MissingDependencyError("zarr", "the dataset store", "pip install sceneforge[store]") from e
+        return zarr.open_group(self.zarr_url, mode=mode,
+                               storage_options=None if self.local else self.storage_options or None)
+
+    def _group_rw(self) -> "zarr.Group":
+        if self._group is None:
+            self._group = self._open("r+")
+        return self._group
+
+    def _array(self, name: str) -> "zarr.Array":
+        if name not in self._arrays:
+            self._arrays[name] = self._group_rw()[name]
+        return self._arrays[name]
+
+    # ------------------------------------------------------------------------- the files
+
+    def path(self, key: str) -> str:
+        return f"{self.root}/{key}"
+
+    def exists(self, key: str = "") -> bool:
+        """Something is at ``key`` (at the store's location when ``key`` is empty)."""
+        return self.fs.exists(self.path(key) if key else self.root)
+
+    def is_file(self) -> bool:
+        """The store's location is a file (not a folder)."""
+        return self.exists() and self.fs.isfile(self.root)
+
+    def is_empty(self) -> bool:
+        """Nothing is at the store's location, or an empty folder."""
+        return not self.exists() or (not self.fs.isfile(self.root) and not self.fs.ls(self.root))
+
+    def put(self, key: str, data: bytes) -> None:
+        """Write ``data`` to ``key`` so that readers see all of it or nothing."""
+        path = self.path(key)
+        tmp = f"{path}.{uuid.uuid4().hex}.partial"
+        self.fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
+        self.fs.pipe_file(tmp, data)
+        self.fs.mv(tmp, path)
+
+    def get(self, key: str) -> bytes | None:
+        """The bytes at ``key``, or None when there is no such file."""
+        try:
+            return self.fs.cat_file(self.path(key))
+        except FileNotFoundError:
+            return None
+
+    def put_json(self, key: str, doc) -> None:
+        self.put(key, json.dumps(doc).encode())
+
+    def get_json(self, key: str):
+        """The JSON at ``key``, or None when it is missing or torn (a write cut by power loss)."""
+        data = self.get(key)
+        if data is None:
+            return None
+        try:
+            return json.loads(data)
+        except ValueError:
+            return None
+
+    def sha256(self, key: str) -> str | None:
+        """SHA-256 of the file at ``key`` (hex), or None when there is none."""
+        data = self.get(key)
+        return None if data is None else hashlib.sha256(data).hexdigest()
+
+    def rm(self, key: str) -> None:
+        """Remove ``key`` and everything under it (the whole store when ``key`` is empty)."""
+        with contextlib.suppress(FileNotFoundError):
+            self.fs.rm(self.path(key), recursive=True)
+
+    def remove_partials(self) -> None:
+        """Remove the temporary files of writes cut short (:meth:`put`'s and zarr's LocalStore's)."""
+        if self.local:
+            for path in self.fs.find(self.root):
+                if path.endswith(".partial"):
+                    self.fs.rm(path)
+
+
+def _protocols(fs) -> tuple[str, ...]:
+    p = fs.protocol
+    return (p,) if isinstance(p, str) else tuple(p)
+
 
 
 # ----------------------------------------------------------------------------- reading
@@ -526,7 +695,7 @@ def _rigid_problems(T: np.ndarray) -> np.ndarray:
     R = T[:, :3, :3]
     bad = ~np.isfinite(T).all(axis=(1, 2))
     with np.errstate(invalid="ignore"):
-        bad |= ~np.isclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=1e-5).all(axis=(1, 2))
+        bad |= ~np.isclose(np.einsum("nji,njk->nik", R, R), np.eye(3), atol=tol.rotation).all(axis=(1, 2))
         bad |= np.linalg.det(np.where(np.isfinite(R), R, 0)) < 0
     bad |= ~(T[:, 3] == [0, 0, 0, 1]).all(axis=1)
     return bad
@@ -577,10 +746,10 @@ def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
         report("D3 is set where D1 is not", _per_view(f[:, 2] & ~f[:, 0]), start)
         with np.errstate(invalid="ignore"):
             report("negative depth", _per_view(d < 0), start)
-            report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - 1e-5), start)
-            report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - 1e-5), start)
-            report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - 1e-5), start)
-            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + 1e-5), start)
+            report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - tol.stored_depth), start)
+            report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - tol.stored_depth), start)
+            report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - tol.stored_depth), start)
+            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + tol.stored_depth), start)
         report("a class outside 0..40", _per_view(cat >= n_classes) | _per_view(a["overhead_category"] >= n_classes),
                start)
         for k, layer in ((0, 0), (1, 2), (2, 4)):
@@ -624,6 +793,27 @@ def _check_meshes(store: SceneStore) -> list[str]:
         if (store.array(f"mesh/{kind}/instance")[:] < 0).any():
             problems.append(f"mesh/{kind}/instance: negative instance index")
     return problems
+
+
+def array_digests(path: str, storage_options: dict | None = None) -> dict[str, str]:
+    """SHA-256 (hex) of every array of the store at ``path``, meshes included, by path in the
+    group: of its decoded values with their dtype and shape, so equal digests mean equal
+    contents however zarr laid out the chunks. Attributes are left out (they hold the
+    package version)."""
+    return _digests(_open_group(path, "r", storage_options))
+
+
+def _digests(group: "zarr.Group") -> dict[str, str]:
+    out = {}
+    for name, array in sorted(group.arrays()):
+        data = np.asarray(array[...])
+        h = hashlib.sha256()
+        h.update(f"{data.dtype.str}{data.shape}".encode())
+        h.update(np.ascontiguousarray(data).tobytes() if data.dtype != object else repr(data.tolist()).encode())
+        out[name] = h.hexdigest()
+    for name, sub in sorted(group.groups()):
+        out.update({f"{name}/{key}": digest for key, digest in _digests(sub).items()})
+    return out
 
 
 # ----------------------------------------------------------------------------- export

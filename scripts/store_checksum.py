@@ -11,23 +11,7 @@ from __future__ import annotations
 import hashlib
 import sys
 
-import numpy as np
-import zarr
-
-
-def array_digests(path: str) -> dict[str, str]:
-    group = zarr.open_group(path, mode="r")
-    out = {}
-    for name, array in sorted(group.arrays()):
-        data = np.asarray(array[...])
-        h = hashlib.sha256()
-        h.update(f"{data.dtype.str}{data.shape}".encode())
-        h.update(np.ascontiguousarray(data).tobytes() if data.dtype != object else repr(data.tolist()).encode())
-        out[name] = h.hexdigest()
-    for name, sub in sorted(group.groups()):
-        for key, digest in array_digests(f"{path.rstrip('/')}/{name}").items():
-            out[f"{name}/{key}"] = digest
-    return out
+from sceneforge.store import array_digests
 
 
 def main(argv: list[str]) -> int:

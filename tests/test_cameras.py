@@ -20,7 +20,7 @@ from sceneforge.cameras import (
     sample_cameras,
     write_pbrs_cameras,
 )
-from sceneforge.conventions import NYU40_IDS
+from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.errors import HouseError, SceneforgeError
 from sceneforge.houses import House, make_instance
 from sceneforge.raytrace import HouseTracer
@@ -87,6 +87,24 @@ def test_opencv_to_opengl():
     np.testing.assert_allclose(opencv_to_opengl(gl), camera.cam_to_world)
     batch = np.stack([camera.cam_to_world, np.eye(4)])
     np.testing.assert_allclose(opencv_to_opengl(batch)[1], np.diag([1, -1, -1, 1]))
+
+
+def test_cameras_and_store_validation_share_the_rotation_tolerance():
+    # A pose a valid store holds must load as a Camera: both use conventions.tol.rotation.
+    from sceneforge.store import _rigid_problems
+
+    def sheared(eps):
+        pose = np.eye(4)
+        pose[0, 1] = eps  # RᵀR is off the identity by eps
+        return pose
+
+    for eps, ok in ((0.1 * tol.rotation, True), (2 * tol.rotation, False), (5e-6, False)):
+        assert not _rigid_problems(sheared(eps)[None])[0] == ok
+        if ok:
+            Camera(default_intrinsics(), sheared(eps), 320, 240)
+        else:
+            with pytest.raises(ValueError, match="orthonormal"):
+                Camera(default_intrinsics(), sheared(eps), 320, 240)
 
 
 def test_camera_checks_its_inputs():

@@ -5,7 +5,7 @@ from __future__ import annotations
 from click.testing import CliRunner
 from sceneforge.cli.main import COMMANDS, cli
 
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 
 
 def run(*args):

@@ -10,17 +10,21 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the learn extra (torch) is not installed")
 
-from sceneforge.cameras import pose_from_view  # noqa: E402
+from sceneforge.cameras import Camera, pose_from_view  # noqa: E402
+from sceneforge.conventions import overhead_pixel  # noqa: E402
 from sceneforge.learn.eft import (  # noqa: E402
     EFTConfig,
     EpipolarFeatureTransformer,
     best_guess_height,
     epipolar_geometry,
     frustum_mask,
+    point_hits,
     scale_intrinsics,
     transfer_surface,
     transfer_volume,
 )
+from sceneforge.learn.train import TrainConfig  # noqa: E402
+from sceneforge.overhead import Box, OverheadCamera  # noqa: E402
 
 # ------------------------------------------------------------------ scene helpers
 
@@ -236,6 +240,54 @@ def test_volume_features_land_exactly_on_the_box_footprint():
     np.testing.assert_allclose(out[footprint], 1.0, rtol=1e-6)  # a mean of ones
 
 
+def overhead_camera_at(centre_z, height, extent, R):
+    """The OverheadCamera whose pose is :func:`overhead_pose` (its other fields are unused)."""
+    box = Box(np.array([-extent, -extent]), np.array([extent, extent]))
+    return OverheadCamera(overhead_pose(centre_z, height), extent, R, np.zeros(5), 0.0, box)
+
+
+def test_eft_maps_points_to_the_pixels_overhead_camera_project_gives():
+    # The same overhead-frame coordinates give bit-identical pixels in numpy and torch ...
+    R, e = 37, 1.7
+    cam = overhead_camera_at(2.3, 2.6, e, R)
+    rng = np.random.default_rng(11)
+    world = rng.uniform([-2, 0, 0], [2, 2.5, 4.5], (2000, 3))
+    uv, z = cam.project(world)
+    local = (world - cam.cam_to_world[:3, 3]) @ cam.cam_to_world[:3, :3]
+    np.testing.assert_array_equal(overhead_pixel(torch.tensor(local[:, :2]), torch.tensor(e, dtype=torch.float64), R).numpy(), uv)
+    # ... and the EFT puts every frontal point in the pixel OverheadCamera.project puts it in.
+    pose = frontal_pose(1.3, 0.3)
+    frontal = Camera(K_BOX, pose, W, H)
+    depth = rng.uniform(0.5, 6.0, (1, 1, H, W))
+    geom = geometry(K_BOX, pose, cam.cam_to_world, e, 2.6, (H, W), R)
+    src, dst, z_eft = point_hits(geom, torch.tensor(depth))
+    origins, directions, scale = frontal.rays()
+    points = origins + directions * (depth.reshape(-1) / scale)[:, None]
+    uv, z = cam.project(points)
+    col, row = np.floor(uv).astype(np.int64).T
+    inside = (col >= 0) & (col < R) & (row >= 0) & (row < R)
+    assert 1000 < inside.sum() < H * W
+    np.testing.assert_array_equal(src.numpy(), np.flatnonzero(inside))
+    np.testing.assert_array_equal(dst.numpy(), (row * R + col)[inside])
+    np.testing.assert_allclose(z_eft.numpy(), z[inside], atol=1e-12)
+
+
+def test_eft_footprint_of_a_box_is_the_box_projected_by_the_overhead_camera():
+    # box x ∈ [-0.4, 0.4], z ∈ [2, 3] seen by a level camera; its overhead footprint is the
+    # pixel rectangle OverheadCamera.project gives its corners (edges on pixel edges)
+    pose, R = frontal_pose(1.0), 20
+    cam = overhead_camera_at(2.5, 2.5, 1.0, R)
+    d1, d2 = box_layers((-0.4, 0.0, 2.0), (0.4, 0.8, 3.0), pose)
+    geom = geometry(K_BOX, pose, cam.cam_to_world, cam.half_extent, 2.5, (H, W), R)
+    out = transfer_volume(torch.ones(1, 1, H, W), geom, torch.tensor(d1)[None], torch.tensor(d2)[None])
+    uv, _ = cam.project([[x, 0.0, z] for x in (-0.4, 0.4) for z in (2.0, 3.0)])
+    (u0, v0), (u1, v1) = np.round(uv.min(axis=0)).astype(int), np.round(uv.max(axis=0)).astype(int)
+    footprint = np.zeros((R, R), bool)
+    footprint[v0:v1, u0:u1] = True
+    assert footprint.sum() == 80
+    np.testing.assert_array_equal(out[0, 0].numpy() > 0, footprint)
+
+
 def test_surface_gating_keeps_the_top_most_contribution():
     # a fronto-parallel plane at z = 2.5 seen by a level camera: every row of a column lands
     # on the same overhead pixel, the top row highest
@@ -294,7 +346,7 @@ def test_module_assembles_232_channels_at_paper_widths():
     depth = torch.tensor(np.stack([inp["near"], inp["far"], inp["far"] + 0.2, inp["far"] + 0.9], 1))
     rgb, df, sf = (torch.tensor(rng.normal(size=(B, c, H_, W_)), dtype=torch.float32, requires_grad=True)
                    for c in (3, 48, 64))
-    eft = EpipolarFeatureTransformer(EFTConfig(resolution=12))
+    eft = EpipolarFeatureTransformer(EFTConfig(), resolution=12)
     out = eft(rgb, df, sf, depth, inp["geom"])
     assert out.shape == (B, 232, 12, 12) == (B, eft.out_channels(48, 64), 12, 12)
     assert out.dtype == torch.float32
@@ -304,6 +356,17 @@ def test_module_assembles_232_channels_at_paper_widths():
     assert df.grad.abs().sum() > 0 and sf.grad.abs().sum() > 0 and rgb.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="depth must be"):
         eft(rgb, df, sf, depth[:, :3], inp["geom"])
+    with pytest.raises(ValueError, match="12-pixel overhead image, the transformer for 16"):
+        EpipolarFeatureTransformer(resolution=16)(rgb, df, sf, depth, inp["geom"])
+
+
+def test_the_overhead_resolution_comes_from_the_data_not_the_config():
+    # A run config saved when EFTConfig still had a resolution loads, without it.
+    config = TrainConfig.from_dict({"stage": "overhead", "stores": ["s.zarr"], "eft": {"resolution": 300, "gating": "surface"}})
+    assert config.eft == EFTConfig(gating="surface")
+    assert "resolution" not in config.to_dict()["eft"]
+    with pytest.raises(ValueError, match="resolution"):
+        EpipolarFeatureTransformer(resolution=0)
 
 
 def test_scale_intrinsics_keeps_pixel_centres():

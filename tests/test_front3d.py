@@ -13,7 +13,7 @@ from PIL import Image
 
 from sceneforge.errors import HouseError
 from sceneforge.houses import House, LoadOptions, Material, Room, discover, load
-from sceneforge.houses.front3d import write_house
+from sceneforge.testing.front3d import write_house
 
 from .conftest import assert_same_geometry, box_instance
 

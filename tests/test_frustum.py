@@ -12,7 +12,7 @@ from sceneforge.frustum import (
     _clipped_meshes,
     _envelope_limit,
     _lens,
-    _settle,
+    _settle_fast,
     _unique_rows,
     clip_triangles,
     clip_triangles_by_plane,
@@ -388,7 +388,7 @@ def test_the_meshes_of_a_view_come_out_as_each_would_alone():
 
 def plain_clipped_mesh(house, ids, cam, planes, d5, config):
     """A mesh of _clipped_meshes in its plainest form: every face of the instances clipped
-    (clip_triangles) and tested against the envelope (drop_behind_envelope), then welded
+    (clip_triangles) and tested against the envelope (plain_drop_behind_envelope), then welded
     by comparing coordinates: a piece's corner that equals a corner of its face is that
     vertex, the other points are new vertices, unique and sorted after the instances'."""
     instances = [house.instances[i] for i in ids]
@@ -399,7 +399,7 @@ def plain_clipped_mesh(house, ids, cam, planes, d5, config):
     corners = np.concatenate([inst.faces + b for inst, b in zip(instances, base)])
     owner = np.concatenate([np.full(len(inst.faces), i, dtype=np.int32) for i, inst in zip(ids, instances)])
     cut, source = clip_triangles(vertices[corners], planes, config.clip_tolerance)
-    pieces, kept = drop_behind_envelope(cut, cam, d5, config)
+    pieces, kept = plain_drop_behind_envelope(cut, cam, d5, config)
     source = source[kept]
     parent = vertices[corners[source]]
     equal = (pieces[:, :, None] == parent[:, None]).all(axis=3)  # (piece, its corner, face corner)
@@ -439,10 +439,10 @@ def assert_plain_meshes(house, cam, d5, id_lists, config):
 
 
 def settled(house, cam, d5, ids, config):
-    """How many faces _settle keeps, passes on as having a corner behind D5 and as crossing
+    """How many faces _settle_fast keeps, passes on as having a corner behind D5 and as crossing
     a plane, and the instances it skips as outside."""
     limit = _envelope_limit(d5, config.behind_envelope)
-    soup = _settle(house, ids, frustum_planes(cam, config.near), cam, _lens(cam, d5.shape), limit,
+    soup = _settle_fast(house, ids, frustum_planes(cam, config.near), cam, _lens(cam, d5.shape), limit,
                    config.clip_tolerance)
     return np.array([len(soup.kept), len(soup.hidden), len(soup.cross)]), sorted(set(ids) - set(soup.ids.tolist()))
 

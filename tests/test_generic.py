@@ -15,7 +15,8 @@ import trimesh
 from sceneforge.conventions import NYU40_IDS
 from sceneforge.errors import HouseError, SceneforgeError
 from sceneforge.houses import House, LoadOptions, Material, load, make_instance
-from sceneforge.houses.generic import load_house, tagged_name, write_house
+from sceneforge.houses.formats.generic import load_house, tagged_name
+from sceneforge.testing.generic import write_house
 
 from .conftest import BREAKFAST_ROOM
 

@@ -16,6 +16,7 @@ pytest.importorskip("zarr", reason="the store extra (zarr) is not installed")
 
 from sceneforge.conventions import NYU40_IDS  # noqa: E402
 from sceneforge.errors import SceneforgeError  # noqa: E402
+from sceneforge.learn.config import FROZEN  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
     CLASS_TO_NYU40,
@@ -221,6 +222,7 @@ def test_the_registry_holds_every_stage_in_training_order():
         assert set(stage.frozen) <= set(STAGES[:position])  # a stage freezes runs trained before it
     assert {n: s.frozen for n, s in REGISTRY.items()} == {"depth": (), "seg": (), "overhead": ("depth", "seg"),
                                                          "camera": ("depth",)}
+    assert {n: s.frozen for n, s in REGISTRY.items() if s.frozen} == FROZEN  # what the torch-free CLI reads
     assert {n: s.predicts for n, s in REGISTRY.items()} == {"depth": ("depth",), "seg": ("seg",),
                                                            "overhead": ("depth", "seg", "overhead"),
                                                            "camera": ("camera",)}
@@ -247,7 +249,7 @@ class _Views(torch.utils.data.Dataset):
 
 def _depth_trainer(**kw) -> Trainer:
     config = TrainConfig(stage="depth", stores=("unread",), **{"batch_size": 2, "width": TINY, **kw})
-    return Trainer(config, {}, torch.device("cpu"))
+    return Trainer(config, {}, None, torch.device("cpu"))
 
 
 def test_checkpoint_restores_the_trainer_and_survives_a_failed_save(tmp_path, monkeypatch):
@@ -315,7 +317,9 @@ def test_every_stage_trains_two_steps_on_cpu(stage, store, frontal_runs, tmp_pat
     assert [int(r["step"]) for r in rows] == [1, 2] and all(float(r["loss"]) > 0 for r in rows)
     saved = read_config(run)
     assert saved == TrainConfig.from_dict(json.loads((run / "config.json").read_text()))
-    assert saved.stage == stage and saved.eft.resolution == 32
+    # the EFT's resolution is the stores' (32 here), not a saved setting: a mismatch with the
+    # 32 × 32 overhead targets would have failed the overhead stage's loss
+    assert saved.stage == stage and "resolution" not in saved.to_dict()["eft"]
     assert json.loads((run / "split.json").read_text())["train"]["views"] == 6
     assert (run / "loss_curve.png").stat().st_size > 1000
     _, nets = load_run(run)
@@ -366,7 +370,7 @@ def test_depth_net_overfits_four_views(store, tmp_path):
 
 
 def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
-    from sceneforge.store import open_store
+    from sceneforge.store import open_store, validate_store
 
     run = tmp_path / "overhead"
     train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
@@ -376,6 +380,8 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
+    # schema, layout and attributes hold; what a 2-step net predicts fails content checks
+    assert [p for p in validate_store(str(out)) if not p.startswith(("view ", "... "))] == []
     for i in range(6):
         p, t = pred.view(i), truth.view(i)
         assert p["depth"].shape == t["depth"].shape and p["overhead_height"].shape == (32, 32)

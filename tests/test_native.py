@@ -10,7 +10,7 @@ import pytest
 from sceneforge import schemas
 from sceneforge.errors import HouseError, SceneforgeError, UnknownFormatError
 from sceneforge.houses import House, discover, iter_houses, load, make_instance
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 
 from .conftest import assert_same_geometry, box_instance
 

@@ -10,9 +10,11 @@ import pytest
 from click.testing import CliRunner
 from sceneforge.cli.main import cli
 
-from sceneforge.cameras import look_at_camera
+from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses.native import write_house
+from sceneforge.houses import BUNDLED_TOY, discover, load
+from sceneforge.houses.formats.native import write_house
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.overhead import (
     Box,
@@ -21,11 +23,13 @@ from sceneforge.overhead import (
     GravityFrame,
     OverheadCamera,
     OverheadConfig,
+    _frame_rays,
     combine,
     depth_statistics_box,
     envelope_frustum_box,
-    frontal_points,
+    frontal_points_fast,
     gravity_frame,
+    level_floor_y,
     majority_room_box,
     overhead_camera,
     overhead_truth,
@@ -166,7 +170,7 @@ def test_no_usable_candidate_is_an_error():
 
 def room_inputs(votes, rooms, excluded=None, groups=((20, 0.0, 3.0),)):
     """majority_room_box's inputs from the room name of each voting pixel and of each point
-    (None: no room), coded as frontal_points codes them: indices into the sorted names."""
+    (None: no room), coded as frontal_points_fast codes them: indices into the sorted names."""
     objects = points_at(*groups)
     room_ids = tuple(sorted({r for r in [*votes, *rooms] if r is not None}))
     code = {r: k for k, r in enumerate(room_ids)}
@@ -309,7 +313,7 @@ def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(hol
         depth[k][rng.random(depth[k].shape) < 0.2] = np.nan
     layers = Layers(depth, layers.category, layers.instance, layers.normal)
     frame = gravity_frame(camera)
-    points, floor_y = frontal_points(house, camera, layers, frame, CONFIG)
+    points, floor_y = frontal_points_fast(house, camera, layers, frame, CONFIG)
 
     origins, directions, scale = camera.rays()
     finite = [np.isfinite(d.ravel()) for d in depth]
@@ -333,6 +337,91 @@ def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(hol
     visible = layers.instance[0][layers.instance[0] >= 0]
     assert points.room_votes.tolist() == [int((rooms[visible] == r).sum()) for r in ("r0", "r1")]
     assert points.room_votes.min() > 0
+
+
+# ------------------------------------------------ the fast kernel against the plain version
+
+
+def plain_frontal_points(house, camera, layers, frame, config):
+    """frontal_points_fast as SPEC §6 reads, one layer and one pixel rule at a time.
+
+    A pixel's point at planar depth z is z times its ray's point at depth 1 in the frame
+    (``_frame_rays``; the test above pins those rays to the back-projected world points).
+    Points of D1, D2 take the D1 instance's room and exclusion, those of D3, D4 the D3
+    instance's; D5 gives planar depths and heights; the top is the highest of D1, D2 and
+    D5; every pixel showing an instance in D1 votes for its room; the floor is the median
+    height of D5's floor pixels, else the storey floor under the camera.
+    """
+    rays = _frame_rays(camera, frame)
+    offset = frame.to_frame(camera.cam_to_world[None, :3, 3])[0]
+    depth = layers.depth.reshape(5, -1)
+    instance = layers.instance.reshape(2, -1)
+    room_ids = tuple(sorted({i.room_id for i in house.instances if i.room_id is not None}, key=str))
+
+    def room(k):
+        rid = house.instances[k].room_id if k >= 0 else None
+        return -1 if rid is None else room_ids.index(rid)
+
+    def excluded(k):
+        return k >= 0 and in_classes(house.instances[k].category, house.instances[k].label,
+                                     frozenset(config.room_excluded))
+
+    objects, rooms, skip, ups = [], [], [], []
+    for segment, (front, back) in enumerate(OBJECT_SEGMENTS):
+        assert FRONT_LAYERS[segment] == front
+        for layer in (front, back):
+            pixels = np.flatnonzero(np.isfinite(depth[layer]))
+            points = (rays[:, pixels] * depth[layer][pixels]).T + offset
+            objects.append(points)
+            rooms += [room(k) for k in instance[segment][pixels]]
+            skip += [excluded(k) for k in instance[segment][pixels]]
+            if segment == 0:
+                ups.append(points[:, 1])
+    pixels = np.flatnonzero(np.isfinite(depth[ENVELOPE_LAYER]))
+    envelope_z = depth[ENVELOPE_LAYER][pixels].astype(np.float64)
+    envelope_up = rays[1][pixels] * envelope_z + offset[1]
+    ups.append(envelope_up)
+    votes = np.zeros(len(room_ids), dtype=np.int64)
+    for k in instance[0]:
+        if k >= 0 and room(k) >= 0:
+            votes[room(k)] += 1
+    floor = layers.envelope_category.reshape(-1)[pixels] == 2
+    if floor.any():
+        floor_y = float(np.median(envelope_up[floor])) + float(frame.origin[1])
+    else:
+        floor_y = level_floor_y(house, float(frame.origin[1]))
+    return FrontalPoints(np.concatenate(objects), np.array(rooms), np.array(skip, dtype=bool), envelope_z,
+                         votes, room_ids, float(max(u.max() for u in ups if len(u)))), floor_y
+
+
+def toy_views():
+    """Two views of each bundled toy house at 80 × 60, as traced and with random holes in
+    every layer (so that no two layers share their pixels)."""
+    rng = np.random.default_rng(0)
+    for house in (load(source) for source in discover(BUNDLED_TOY)):
+        cameras, _ = sample_cameras(house, 2, np.random.default_rng(0), CameraSamplerConfig())
+        tracer = HouseTracer(house)
+        for cam in cameras:
+            cam = cam.resized(80, 60)
+            layers = frontal_layers(house, cam, tracer)
+            yield house, cam, layers
+            depth = layers.depth.copy()
+            depth[rng.random(depth.shape) < 0.1] = np.nan
+            yield house, cam, Layers(depth, layers.category, layers.instance, layers.normal)
+
+
+def test_frontal_points_fast_equals_the_plain_version_on_toy_views():
+    n = 0
+    for house, camera, layers in toy_views():
+        frame = gravity_frame(camera)
+        fast, fast_floor = frontal_points_fast(house, camera, layers, frame, CONFIG)
+        plain, plain_floor = plain_frontal_points(house, camera, layers, frame, CONFIG)
+        for field in ("objects", "object_room", "object_excluded", "envelope_z", "room_votes"):
+            np.testing.assert_array_equal(getattr(fast, field), getattr(plain, field), err_msg=field)
+        assert fast.room_ids == plain.room_ids
+        assert fast.top == plain.top and fast_floor == plain_floor
+        n += len(fast.objects)
+    assert n > 10_000
 
 
 def overhead_at(height, resolution=16):

@@ -19,9 +19,9 @@ from sceneforge.cli.main import cli
 from sceneforge.cameras import look_at_camera, write_pbrs_cameras
 from sceneforge.config import load_config
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses.native import write_house
+from sceneforge.houses.formats.native import write_house
 from sceneforge.pipeline import render_dataset
-from sceneforge.store import open_store, validate_store
+from sceneforge.store import array_digests, open_store, validate_store
 
 #: tiny views, four per toy house, two per shard (a house's views span shards): 12 views in 6 shards
 TINY = {"width": 32, "height": 24, "views_per_house": 4, "view": {"overhead": {"resolution": 16}},
@@ -86,6 +86,8 @@ def reference_no_rgb(tmp_path_factory) -> Path:
 def test_two_workers_write_the_same_bytes(reference_no_rgb, tmp_path):
     render_dataset("bundled:toy", str(tmp_path / "two.zarr"), load_config(None, NO_RGB), workers=2)
     assert files_of(tmp_path / "two.zarr") == files_of(reference_no_rgb)
+    digests = array_digests(str(tmp_path / "two.zarr"))
+    assert len(digests) == 24 and digests == array_digests(str(reference_no_rgb))  # 25 arrays less rgb
 
 
 @pytest.mark.slow

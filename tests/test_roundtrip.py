@@ -50,20 +50,20 @@ WRITERS = ["sceneforge", "suncg", "front3d", "gltf", "glb", "obj", "ply"]
 
 def write(house: House, fmt: str, root):
     if fmt == "sceneforge":
-        from sceneforge.houses.native import write_house
+        from sceneforge.houses.formats.native import write_house
 
         return write_house(house, root / house.id)
     if fmt == "suncg":
-        from sceneforge.houses.suncg import write_house
+        from sceneforge.testing.suncg import write_house
 
         write_house(house, root)
         return root
     if fmt == "front3d":
-        from sceneforge.houses.front3d import write_house
+        from sceneforge.testing.front3d import write_house
 
         write_house(house, root)
         return root
-    from sceneforge.houses.generic import write_house
+    from sceneforge.testing.generic import write_house
 
     return write_house(house, root / f"{house.id}.{fmt}")
 

@@ -11,14 +11,14 @@ import pytest
 from click.testing import CliRunner
 from sceneforge.cli.main import cli
 
-from sceneforge import schemas
+from sceneforge import conventions, schemas
 from sceneforge.cameras import Camera
 from sceneforge.config import DatasetConfig, config_schema, load_config
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, bundled_toy_dir, discover, load
 from sceneforge.pipeline import render_dataset
 from sceneforge.preview import layer_points
-from sceneforge.store import describe, layout, open_store, validate_store
+from sceneforge.store import conventions_attrs, describe, layout, open_store, validate_store
 from sceneforge.view import compute_view
 
 #: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
@@ -51,7 +51,7 @@ def store_copy(store_path, tmp_path) -> Path:
 
 def test_config_schema_file_is_the_one_generated_from_the_dataclasses():
     path = Path(schemas.__file__).parent / "config.schema.json"
-    assert json.loads(path.read_text()) == config_schema(), "run: python -m sceneforge.config > " + str(path)
+    assert json.loads(path.read_text()) == config_schema(), "run: python -m sceneforge.config (writes " + str(path) + ")"
 
 
 def test_config_round_trips_and_overrides_win(tmp_path):
@@ -100,9 +100,29 @@ def test_written_store_matches_the_schema(store_path):
     attrs = doc["attributes"]
     assert attrs["nyu40"][2] == {"id": 2, "name": "floor", "envelope": True}
     assert attrs["conventions"]["layers"] == ["D1", "D2", "D3", "D4", "D5"]
+    assert attrs["conventions"] == conventions.record()
     assert attrs["config"] == load_config(None, SMALL).to_dict() and attrs["seed"] == 0
     assert [h["id"] for h in attrs["houses"]] == ["toy_0_000", "toy_0_001", "toy_0_002"]
     assert attrs["houses"][1]["views"] == [2, 4] and attrs["houses"][1]["cameras"]["accepted"] == 2
+
+
+def test_store_conventions_are_generated_from_conventions_py(store_path, monkeypatch):
+    import zarr
+
+    record = conventions_attrs()
+    assert record["category_layers"] == ["D1", "D3", "D5"] and record["instance_layers"] == ["D1", "D3"]
+    assert record["object_layers"] == ["D1", "D2", "D3", "D4"] and record["envelope_layer"] == "D5"
+    assert record["camera_axes"] == {"convention": "OpenCV", "x": "right", "y": "down", "z": "forward",
+                                     "pose": "cam_to_world"}
+    assert record["depth"]["no_surface"] == "NaN" and record["pixel_centres"]["offset"] == 0.5
+    assert record["tolerances"]["rotation"] == conventions.tol.rotation == 1e-6
+    # built from the constants, not restated: change one and the record follows
+    monkeypatch.setattr(conventions, "CLASS_LAYERS", (0, 1, 4))
+    assert conventions_attrs()["category_layers"] == ["D1", "D2", "D5"]
+    # and the schema holds a store's record to the conventions
+    doc = describe(zarr.open_group(str(store_path), mode="r"))
+    doc["attributes"]["conventions"]["camera_axes"]["y"] = "up"
+    assert [e.split(":")[0] for e in schemas.errors(doc, "store")] == ["attributes/conventions/camera_axes"]
 
 
 def test_reading_a_view_back_equals_what_was_computed(store_path):

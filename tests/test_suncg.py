@@ -13,8 +13,9 @@ from PIL import Image
 
 from sceneforge.errors import HouseError
 from sceneforge.houses import House, Level, LoadOptions, Material, Room, discover, load
-from sceneforge.houses.suncg import CSV_FIELDS, write_house
-from sceneforge.houses.wavefront import read_obj
+from sceneforge.houses.formats.obj import read_obj
+from sceneforge.houses.formats.suncg import CSV_FIELDS
+from sceneforge.testing.suncg import write_house
 
 from .conftest import box_instance
 

@@ -13,7 +13,7 @@ from sceneforge.cli.toy_houses import toy_houses
 
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import bundled_toy_dir
-from sceneforge.houses.native import load_house, write_house
+from sceneforge.houses.formats.native import load_house, write_house
 from sceneforge.houses.toy import (
     BUNDLE_COUNT,
     BUNDLE_SEED,

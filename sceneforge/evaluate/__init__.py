@@ -7,10 +7,15 @@
   mesh; the coverage table (paper Table 1) and the predictions table (paper §5).
 - :mod:`.voxels`: voxel IoU of the layer intervals against the solid object mesh.
 - :mod:`.inputs`: what all of them read of a view, from a store or from ``compute_view``.
+- :mod:`.stores`: the views of opened stores to score, predictions checked against their
+  truth view by view, and the per-view voxel loop.
+- :mod:`.config`: the configs of all of them in one file, ``sceneforge evaluate --config``.
 
-Everything here is pure: arrays in, numbers out. ``sceneforge evaluate`` reads the stores.
+Everything but :mod:`.stores` is pure: arrays in, numbers out; ``sceneforge evaluate``
+opens the stores.
 """
 
+from .config import EvaluateConfig
 from .coverage import (
     COVERAGE_VARIANTS,
     GT_KINDS,
@@ -34,6 +39,15 @@ from .depth_mesh import (
     perspective_mesh,
 )
 from .inputs import OVERHEAD, PART_NAMES, EvalView, GroundTruthMesh
+from .stores import (
+    ViewVoxelScore,
+    VoxelReport,
+    coverage_views,
+    matching_view,
+    prediction_views,
+    score_store_voxels,
+    views_to_score,
+)
 from .surface import (
     MeshDistance,
     SurfaceConfig,
@@ -56,10 +70,11 @@ from .voxels import (
 
 __all__ = [
     "COVERAGE_VARIANTS", "GT_KINDS", "OVERHEAD", "PAPER_COVERAGE", "PAPER_PREDICTIONS", "PART_NAMES",
-    "PREDICTION_VARIANTS", "EvalView", "GroundTruthMesh", "Mesh", "MeshDistance", "MeshingConfig",
-    "SurfaceConfig", "SurfaceReport", "Variant", "ViewScores", "VoxelConfig", "VoxelScore", "concatenate",
-    "default_thresholds", "evaluate_views", "frustum_mask", "grid_mesh", "height_map_mesh", "inlier_fraction",
-    "layer_occupancy", "mesh_occupancy", "orthographic_mesh", "perspective_mesh", "plot_iou_histogram",
-    "precision_recall", "sample_surface", "score_parts", "score_view", "score_voxels",
-    "surface_precision_recall", "voxel_iou",
+    "PREDICTION_VARIANTS", "EvalView", "EvaluateConfig", "GroundTruthMesh", "Mesh", "MeshDistance",
+    "MeshingConfig", "SurfaceConfig", "SurfaceReport", "Variant", "ViewScores", "ViewVoxelScore", "VoxelConfig",
+    "VoxelReport", "VoxelScore", "concatenate", "coverage_views", "default_thresholds", "evaluate_views",
+    "frustum_mask", "grid_mesh", "height_map_mesh", "inlier_fraction", "layer_occupancy", "matching_view",
+    "mesh_occupancy", "orthographic_mesh", "perspective_mesh", "plot_iou_histogram", "precision_recall",
+    "prediction_views", "sample_surface", "score_parts", "score_store_voxels", "score_view", "score_voxels",
+    "surface_precision_recall", "views_to_score", "voxel_iou",
 ]

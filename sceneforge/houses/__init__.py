@@ -1,4 +1,4 @@
-"""Houses: the model, one loader (and writer) module per format, the toy-house generator.
+"""Houses: the model, the input formats (a registry, :mod:`.formats`), the toy-house generator.
 
 Every command that takes ``HOUSES`` goes through :func:`discover`, which turns a path
 (one house file, a house folder, a folder of houses in any format, a SUNCG root or a
@@ -8,22 +8,17 @@ Loading is lazy so that one broken house fails alone.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import HouseError, SceneforgeError, UnknownFormatError
+from .formats import REGISTRY, HouseSource, find
 from .model import House, Instance, Level, Material, Room, make_instance
 
 __all__ = [
     "BUNDLED_TOY", "FORMATS", "House", "HouseSource", "Instance", "Level", "LoadOptions", "Material", "Room",
     "discover", "iter_houses", "load", "make_instance",
 ]
-
-#: Names accepted by ``--format``.
-FORMATS = ("sceneforge", "gltf", "obj", "ply", "suncg", "front3d")
-#: file suffix of a generic scene → its format name
-MESH_SUFFIXES = {".gltf": "gltf", ".glb": "gltf", ".obj": "obj", ".ply": "ply"}
 
 
 @dataclass(frozen=True)
@@ -44,56 +39,8 @@ class LoadOptions:
     future_dir: str | None = None
 
 
-@dataclass(frozen=True)
-class HouseSource:
-    """A house that :func:`load` can read: its id, format and path."""
-
-    id: str
-    format: str
-    path: Path
-
-
-def _suncg_root_of(path: Path) -> Path | None:
-    """The SUNCG root of ``path`` (root, ``house/<id>/`` or its ``house.json``), if it is one."""
-    for cand in (path, *path.parents[:3]):
-        if (cand / "house").is_dir() and (cand / "object").is_dir():
-            return cand
-    return None
-
-
-def _json_kind(path: Path) -> str | None:
-    from .native import is_native
-
-    if is_native(path):
-        return "sceneforge"
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    if isinstance(doc, dict):
-        if "levels" in doc and ("version" in doc or "up" in doc):
-            return "suncg"
-        if "furniture" in doc and "scene" in doc:
-            return "front3d"
-    return None
-
-
-def _detect_file(path: Path) -> str | None:
-    if path.suffix.lower() in MESH_SUFFIXES:
-        return MESH_SUFFIXES[path.suffix.lower()]
-    if path.suffix.lower() == ".json":
-        return _json_kind(path)
-    return None
-
-
-def _source(path: Path, fmt: str) -> HouseSource:
-    if fmt == "sceneforge":
-        house_dir = path.parent if path.is_file() else path
-        return HouseSource(house_dir.name, fmt, house_dir)
-    if fmt == "suncg":
-        house_dir = path.parent if path.is_file() else path
-        return HouseSource(house_dir.name, fmt, house_dir / "house.json")
-    return HouseSource(path.stem, fmt, path)
+#: Names accepted by ``--format``, in the registry's order.
+FORMATS = tuple(REGISTRY)
 
 
 #: Stands for the toy houses bundled with the package wherever a houses path is taken.
@@ -119,7 +66,7 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
         raise SceneforgeError(f"{path}: no such file or folder")
     if fmt is not None and fmt not in FORMATS:
         raise UnknownFormatError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
-    found = _discover(path, fmt)
+    found = find(path, None if fmt is None else REGISTRY[fmt])
     if not found:
         raise UnknownFormatError(
             f"{path}: no house found (supported: sceneforge house.json, glTF/GLB, OBJ, PLY, "
@@ -132,42 +79,6 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
     return found
 
 
-def _discover(path: Path, fmt: str | None) -> list[HouseSource]:
-    if path.is_file():
-        kind = fmt or _detect_file(path)
-        if kind is None:
-            raise UnknownFormatError(f"{path}: not a house in any supported format")
-        return [_source(path, kind)]
-    if fmt in (None, "suncg") and _suncg_root_of(path) == path:
-        return [
-            HouseSource(d.name, "suncg", d / "house.json")
-            for d in sorted((path / "house").iterdir())
-            if (d / "house.json").is_file()
-        ]
-    if fmt in (None, "suncg") and (path / "house.json").is_file() and _suncg_root_of(path):
-        return [_source(path, "suncg")]
-    if fmt in (None, "front3d") and (path / "3D-FRONT").is_dir():
-        return _discover(path / "3D-FRONT", "front3d")
-    if fmt in (None, "sceneforge") and (path / "house.json").is_file():
-        from .native import is_native
-
-        if is_native(path):
-            return [_source(path, "sceneforge")]
-    found: list[HouseSource] = []
-    for child in sorted(path.iterdir()):
-        if child.name.startswith("."):
-            continue
-        if child.is_dir():
-            found += _discover(child, fmt)
-        else:
-            kind = _detect_file(child)
-            if kind is not None and (fmt is None or kind == fmt):
-                found.append(_source(child, kind))
-            elif fmt is not None and kind is None and child.suffix.lower() == ".json" and fmt == "front3d":
-                found.append(_source(child, fmt))
-    return found
-
-
 def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -> House:
     """Read one house. Expected problems raise :class:`HouseError` naming house and file."""
     options = options or LoadOptions()
@@ -176,28 +87,15 @@ def load(source: HouseSource | str | Path, options: LoadOptions | None = None) -
         if len(found) != 1:
             raise SceneforgeError(f"{source}: holds {len(found)} houses, expected one")
         source = found[0]
+    fmt = REGISTRY.get(source.format)
+    if fmt is None:
+        raise UnknownFormatError(f"unknown format {source.format!r}")
     try:
-        if source.format == "sceneforge":
-            from .native import load_house
-
-            return load_house(source.path, strict=options.strict)
-        if source.format in ("gltf", "obj", "ply"):
-            from .generic import load_house
-
-            return load_house(source.path, options)
-        if source.format == "suncg":
-            from .suncg import load_house
-
-            return load_house(source.path, options)
-        if source.format == "front3d":
-            from .front3d import load_house
-
-            return load_house(source.path, options)
+        return fmt.load(source, options)
     except SceneforgeError:
         raise
     except (OSError, ValueError, KeyError, IndexError, TypeError) as e:
         raise HouseError(source.id, source.path, f"{type(e).__name__}: {e}") from e
-    raise UnknownFormatError(f"unknown format {source.format!r}")
 
 
 def iter_houses(path: str | Path, options: LoadOptions | None = None):

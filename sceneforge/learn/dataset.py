@@ -24,6 +24,7 @@ import torch
 
 from ..conventions import NYU40_NAMES, is_envelope
 from ..errors import SceneforgeError
+from .config import SplitConfig  # defined without torch, for the CLI and the schema
 
 #: mean RGB colour (0..255) subtracted from every input image *(ref: PBRS renderings)*
 RGB_MEAN = (178.1781, 158.5039, 142.5141)
@@ -67,24 +68,6 @@ CLASS_TO_NYU40 = np.where(np.arange(SEG_CLASSES) == BACKGROUND, 0, np.arange(SEG
 def segmentation_target(category: np.ndarray) -> np.ndarray:
     """NYU40 ids (any shape, uint8) → segmentation classes (same shape, int64)."""
     return NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
-
-
-@dataclass(frozen=True)
-class SplitConfig:
-    """How houses are divided into train, validation and test."""
-
-    #: fraction of the houses (rounded down) held out for validation
-    val_fraction: float = 0.1
-    #: fraction of the houses (rounded down) held out for testing
-    test_fraction: float = 0.1
-    #: seed of the shuffle that assigns houses to splits
-    seed: int = 0
-
-    def __post_init__(self):
-        v, t = self.val_fraction, self.test_fraction
-        if not (0 <= v and 0 <= t and v + t < 1):
-            raise ValueError(f"val and test fractions must be >= 0 and sum below 1, got "
-                             f"{self.val_fraction} and {self.test_fraction}")
 
 
 SPLITS = ("train", "val", "test")

@@ -1,16 +1,19 @@
 """The Epipolar Feature Transformer: frontal feature maps → the overhead view (SPEC §10).
 
-Frames and conventions (stated once here):
+Frames and conventions are those of :mod:`sceneforge.conventions`; what the EFT needs
+of them:
 
 - The frontal camera is a pinhole camera with OpenCV axes; ``K`` is given for the feature
   map's resolution (:func:`scale_intrinsics` adapts it), pixel centres at integer + 0.5.
   The ray of pixel ``(i, j)`` is ``X(z) = z · K⁻¹ (j + 0.5, i + 0.5, 1)ᵀ`` in camera
   coordinates, ``z`` its planar depth.
-- The overhead camera is orthographic with OpenCV axes (z = straight down), half-extent
-  ``e`` metres and ``R × R`` pixels, as :class:`sceneforge.overhead.OverheadCamera`:
-  a point with overhead-camera coordinates ``(x, y, z)`` falls in pixel
-  ``(row, col) = floor((y / e + 1) R / 2), floor((x / e + 1) R / 2)`` at overhead depth ``z``.
-  ``floor_depth`` is the overhead depth of the floor (the camera's ``tz``).
+- The overhead camera is :class:`sceneforge.overhead.OverheadCamera` (orthographic, OpenCV
+  axes, z = straight down, half-extent ``e`` metres, ``R × R`` pixels): a point with
+  overhead-camera coordinates ``(x, y, z)`` falls in the pixel that
+  :func:`sceneforge.conventions.overhead_pixel` gives, at overhead depth ``z``
+  (``tests/test_eft.py`` pins this to ``OverheadCamera.project``). ``floor_depth`` is the
+  overhead depth of the floor (the camera's ``tz``). ``R`` is the stores' overhead
+  resolution: the data's, given to the transformer, not a setting of it.
 
 The transform *(paper §4, ref)* spreads every frontal pixel's feature vector along the
 overhead image of a segment of its ray:
@@ -43,34 +46,13 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
-GATINGS = ("volume", "surface")
+from sceneforge.conventions import OBJECT_SEGMENTS, overhead_pixel, overhead_pixel_centre, tol
 
-
-@dataclass(frozen=True)
-class EFTConfig:
-    """How frontal features are carried to the overhead view."""
-
-    #: overhead feature map size in pixels (square); the store's overhead resolution
-    resolution: int = 300
-    #: "volume" (mean along ray segments, the paper's choice) or "surface" (z-buffer)
-    gating: Literal["volume", "surface"] = "volume"
-    #: samples per overhead pixel along a segment's major axis (1 ≈ a Bresenham line)
-    samples_per_pixel: float = 1.0
-    #: rays are sampled in chunks of at most this many samples (bounds memory)
-    max_samples: int = 1 << 21
-
-    def __post_init__(self):
-        if self.gating not in GATINGS:
-            raise ValueError(f"gating must be one of {GATINGS}, got {self.gating!r}")
-        if self.resolution < 1:
-            raise ValueError(f"resolution must be at least 1 pixel, got {self.resolution}")
-        if not self.samples_per_pixel > 0:
-            raise ValueError(f"samples_per_pixel must be > 0, got {self.samples_per_pixel}")
+from .config import EFTConfig  # defined without torch, for the CLI and the schema
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,10 +86,6 @@ class EpipolarGeometry:
     @property
     def device(self) -> torch.device:
         return self.origin.device
-
-    def pixel_scale(self) -> Tensor:
-        """(B,) float64 overhead pixels per metre."""
-        return 0.5 * self.resolution / self.extent
 
 
 def scale_intrinsics(K: Tensor, from_hw: tuple[int, int], to_hw: tuple[int, int]) -> Tensor:
@@ -172,7 +150,7 @@ def _clip(origin: Tensor, direction: Tensor, z0: Tensor, z1: Tensor, lo: Tensor,
     origin, lo, hi : (n, 3); direction : (n, 3); z0, z1 : (n,)  (Liang–Barsky)
     Returns the clipped ``z0, z1`` (n,) and ``inside`` (n,) bool.
     """
-    flat = direction.abs() < 1e-12
+    flat = direction.abs() < tol.clip_slope
     safe = torch.where(flat, torch.ones_like(direction), direction)
     za, zb = (lo - origin) / safe, (hi - origin) / safe
     zmin = torch.where(flat, torch.full_like(za, -torch.inf), torch.minimum(za, zb))
@@ -213,9 +191,9 @@ def segment_pairs(geom: EpipolarGeometry, near: Tensor, far: Tensor, config: EFT
     hi = torch.cat([e, e, inf], dim=1)
     z0, z1, inside = _clip(o, d, z0, z1, lo, hi)
     b, p, o, d, z0, z1 = b[inside], p[inside], o[inside], d[inside], z0[inside], z1[inside]
-    e, scale = geom.extent[b].unsqueeze(1), geom.pixel_scale()[b].unsqueeze(1)
-    uv0 = ((o + z0.unsqueeze(1) * d)[:, :2] + e) * scale
-    duv = (z1 - z0).unsqueeze(1) * d[:, :2] * scale
+    e = geom.extent[b].unsqueeze(1)
+    uv0 = overhead_pixel((o + z0.unsqueeze(1) * d)[:, :2], e, R)
+    duv = overhead_pixel((o + z1.unsqueeze(1) * d)[:, :2], e, R) - uv0
     n = torch.ceil(duv.abs().amax(dim=1) * config.samples_per_pixel).clamp(min=1).long()
     return _rasterise(b * (H * W) + p, b, uv0, duv, n, R, config.max_samples)
 
@@ -287,7 +265,7 @@ def point_hits(geom: EpipolarGeometry, depth: Tensor) -> tuple[Tensor, Tensor, T
     b, _, p = ok.nonzero(as_tuple=True)
     z = depth[ok]
     pts = geom.origin[b] + z.unsqueeze(1) * geom.directions[b, p]
-    uv = (pts[:, :2] + geom.extent[b].unsqueeze(1)) * geom.pixel_scale()[b].unsqueeze(1)
+    uv = overhead_pixel(pts[:, :2], geom.extent[b].unsqueeze(1), R)
     col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
     inside = (col >= 0) & (col < R) & (row >= 0) & (row < R)
     dst = (b * R + row) * R + col
@@ -408,7 +386,7 @@ def frustum_mask(geom: EpipolarGeometry) -> Tensor:
     """
     B, R, (H, W) = geom.batch, geom.resolution, geom.frontal_hw
     f64 = dict(dtype=torch.float64, device=geom.device)
-    c = (torch.arange(R, **f64) + 0.5) / R * 2.0 - 1.0
+    c = overhead_pixel_centre(torch.arange(R, **f64), 1.0, R)
     y, x = torch.meshgrid(c, c, indexing="ij")
     xy = torch.stack([x.reshape(-1), y.reshape(-1)], dim=1).unsqueeze(0) * geom.extent.view(B, 1, 1)
     # the vertical segment in the overhead frame: (x, y, s · floor_depth), s ∈ [0, 1]
@@ -430,7 +408,7 @@ def frustum_mask(geom: EpipolarGeometry) -> Tensor:
     aq = uvwq @ planes.T
     s_lo = torch.zeros(a0.shape[:2], **f64)
     s_hi = torch.ones(a0.shape[:2], **f64)
-    flat = aq.abs() < 1e-12
+    flat = aq.abs() < tol.clip_slope
     safe = torch.where(flat, torch.ones_like(aq), aq)
     root = -a0 / safe
     s_lo = torch.maximum(s_lo, torch.where(~flat & (aq > 0), root, -torch.inf).amax(dim=2))
@@ -445,16 +423,22 @@ def frustum_mask(geom: EpipolarGeometry) -> Tensor:
 class EpipolarFeatureTransformer(nn.Module):
     """Frontal RGB, features and layers + overhead camera → the overhead nets' input.
 
+    resolution : the overhead image size R (square), from the data: the stores' overhead
+                 resolution (``ViewIndex.shapes["Wo"]``)
+
     forward(rgb (B, 3, H, W), depth_features (B, Cd, H, W), seg_features (B, Cs, H, W),
-    depth (B, 4, H, W) planar D1..D4 with NaN where a layer is empty, geometry) returns
-    (B, 2 + 2·(3 + Cd + Cs), R, R) float32: best-guess height, frustum mask, then the
-    ``(D1, D2)`` and ``(D3, D4)`` transfers of ``[rgb, depth_features, seg_features]``
-    (surface gating uses the segment ends as points).
+    depth (B, 4, H, W) planar D1..D4 with NaN where a layer is empty, geometry for R)
+    returns (B, 2 + 2·(3 + Cd + Cs), R, R) float32: best-guess height, frustum mask, then
+    the ``(D1, D2)`` and ``(D3, D4)`` transfers (``conventions.OBJECT_SEGMENTS``) of
+    ``[rgb, depth_features, seg_features]`` (surface gating uses the segment ends as points).
     """
 
-    def __init__(self, config: EFTConfig | None = None):
+    def __init__(self, config: EFTConfig | None = None, *, resolution: int):
         super().__init__()
+        if int(resolution) < 1:
+            raise ValueError(f"resolution must be at least 1 pixel, got {resolution}")
         self.config = config or EFTConfig()
+        self.resolution = int(resolution)
 
     @staticmethod
     def out_channels(depth_features: int, seg_features: int) -> int:
@@ -478,8 +462,10 @@ class EpipolarFeatureTransformer(nn.Module):
         if geom.frontal_hw != (H, W) or geom.batch != B:
             raise ValueError(f"geometry is for {geom.batch} views of {geom.frontal_hw}, "
                              f"features are {B} of {(H, W)}")
+        if geom.resolution != self.resolution:
+            raise ValueError(f"geometry is for a {geom.resolution}-pixel overhead image, "
+                             f"the transformer for {self.resolution}")
         features = torch.cat([rgb, depth_features, seg_features], dim=1)
         parts = [best_guess_height(geom, depth), frustum_mask(geom)]
-        parts += [self.transfer(features, geom, depth[:, 0], depth[:, 1]),
-                  self.transfer(features, geom, depth[:, 2], depth[:, 3])]
+        parts += [self.transfer(features, geom, depth[:, a], depth[:, b]) for a, b in OBJECT_SEGMENTS]
         return torch.cat([p.to(features.dtype) for p in parts], dim=1)

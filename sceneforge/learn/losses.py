@@ -4,25 +4,12 @@ so a view with little content weighs as much as a full one."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from .config import LossConfig  # defined without torch, for the CLI and the schema
 from .dataset import SEG_CLASSES
-
-
-@dataclass(frozen=True)
-class LossConfig:
-    """Weights and parameters of the losses."""
-
-    #: Huber threshold δ of the depth loss, metres (paper: 1)
-    huber_delta: float = 1.0
-    #: weight of the envelope layer D5 in the depth loss (D1..D4 weigh 1)
-    envelope_weight: float = 0.5
-    #: weight of the overhead segmentation loss next to the overhead height loss
-    overhead_seg_weight: float = 1.0
 
 
 def _per_example_mean(values: Tensor, valid: Tensor) -> Tensor:

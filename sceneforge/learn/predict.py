@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -37,6 +38,10 @@ from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers
 from .train import load_run, overhead_input, resolve_device
+
+if TYPE_CHECKING:
+    from sceneforge.config import DatasetConfig
+    from sceneforge.store import SceneStore, StoreWriter
 
 #: predicted heights at or below this (metres above the floor) are floor: NaN
 MIN_HEIGHT = 0.05
@@ -135,14 +140,51 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     """
     import time
 
-    import zarr
-
-    from sceneforge.store import array_specs, base_attrs, create_arrays, open_store, sizes_of, write_shard
+    from sceneforge.store import StoreWriter, open_store
 
     t0 = time.perf_counter()
-    if Path(out).exists() and not overwrite:
+    writer = StoreWriter(out)
+    if writer.exists() and not overwrite:
         raise SceneforgeError(f"{out} exists: pass --overwrite to replace it")
     dev = resolve_device(device)
+    config, nets, stages = _load_nets(run, camera_run, dev)
+
+    index = index_stores([store])
+    valid = index.view
+    source = open_store(store)
+    eft = None
+    if config.stage == "overhead":
+        eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
+    dataset = StoreDataset(index, ("rgb", "camera"))
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
+
+    render_config = _prediction_config(source.config)
+    n = len(source)
+    writer.create(render_config, source.attrs["houses_source"], n, replace=True)
+    shards = _Shards(writer, render_config, source, valid)
+    if progress:
+        progress.start("predicting views", len(valid), "views")
+    with torch.no_grad():
+        for batch in loader:
+            batch = {k: v.to(dev) for k, v in batch.items()}
+            outputs = _predict_batch(nets, eft, batch, camera_run is not None)
+            for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
+                shards.add(int(i), {name: value[row] for name, value in outputs.items()})
+            shards.flush()
+            if progress:
+                progress.advance(len(batch["index"]))
+    shards.flush(final=True)
+
+    prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
+                  "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
+                  "min_height": MIN_HEIGHT}
+    writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
+                    failures=source.attrs["failures"], prediction=prediction)
+    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)
+
+
+def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device) -> tuple:
+    """The run's config and nets (with the camera run's, when given) and the stages predicted."""
     config, nets = load_run(run, dev)
     if config.stage == "camera":
         raise SceneforgeError(f"{run} is a camera run: give a depth, seg or overhead run, and the camera run "
@@ -156,66 +198,50 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
             raise SceneforgeError(f"{camera_run} is a {cam_config.stage} run, not a camera run")
         nets.update(camera=cam_nets["camera"], camera_depth=cam_nets["depth"])
         stages += ("camera",)
+    return config, nets, stages
 
-    index = index_stores([store])
-    valid = index.view
-    source = open_store(store)
-    eft = None
-    if config.stage == "overhead":
-        eft = EpipolarFeatureTransformer(replace(config.eft, resolution=index.shapes["Wo"]))
-    dataset = StoreDataset(index, ("rgb", "camera"))
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
 
-    render_config = source.config
-    render_config = replace(render_config, rgb=replace(render_config.rgb, enabled=False),
-                            view=replace(render_config.view, with_mesh=False),
-                            store=replace(render_config.store, normals=False))
-    n = len(source)
-    group = zarr.open_group(str(out), mode="w")
-    create_arrays(group, render_config, n)
-    specs = array_specs(render_config, per_view=True)
-    arrays = {s.name: group[s.name] for s in specs}
-    sizes = sizes_of(render_config, n)
-    per_shard = render_config.store.views_per_shard
-    is_valid = np.zeros(n, bool)
-    is_valid[valid] = True
-    predicted: dict[int, dict[str, np.ndarray]] = {}
-    next_shard = 0
+def _prediction_config(config: "DatasetConfig") -> "DatasetConfig":
+    """The source store's render config, less what no net predicts: RGB, normals, meshes."""
+    return replace(config, rgb=replace(config.rgb, enabled=False), view=replace(config.view, with_mesh=False),
+                   store=replace(config.store, normals=False))
 
-    def flush(final: bool) -> None:
-        """Write every shard whose valid views all have their predictions."""
-        nonlocal next_shard
-        while next_shard < n:
-            a, b = next_shard, min(next_shard + per_shard, n)
-            if not final and any(is_valid[i] and i not in predicted for i in range(a, b)):
+
+class _Shards:
+    """Predicted views held until every valid view of their shard has its prediction; then
+    the shard is written whole (fill values where no net predicts, cameras and ids copied
+    from the source store), in view order."""
+
+    def __init__(self, writer: "StoreWriter", config: "DatasetConfig", source: "SceneStore", valid: np.ndarray):
+        from sceneforge.store import array_specs, sizes_of
+
+        self.writer, self.source = writer, source
+        self.n = len(source)
+        self.specs = array_specs(config, per_view=True)
+        self.sizes = sizes_of(config, self.n)
+        self.per_shard = config.store.views_per_shard
+        self.is_valid = np.zeros(self.n, bool)
+        self.is_valid[valid] = True
+        self.predicted: dict[int, dict[str, np.ndarray]] = {}
+        self.next_shard = 0  # first view of the next shard to write
+
+    def add(self, i: int, outputs: dict[str, np.ndarray]) -> None:
+        """Hold view ``i``'s predictions (one view's entries, keyed by array name)."""
+        self.predicted[i] = outputs
+
+    def flush(self, final: bool = False) -> None:
+        """Write every shard whose valid views all have their predictions (every shard left
+        when ``final``)."""
+        while self.next_shard < self.n:
+            a, b = self.next_shard, min(self.next_shard + self.per_shard, self.n)
+            if not final and any(self.is_valid[i] and i not in self.predicted for i in range(a, b)):
                 return
-            block = {spec.name: np.stack([spec.blank(sizes)] * (b - a)) for spec in specs}
+            block = {spec.name: np.stack([spec.blank(self.sizes)] * (b - a)) for spec in self.specs}
             for name in COPIED:
-                block[name] = np.asarray(source.array(name)[a:b])
+                block[name] = np.asarray(self.source.array(name)[a:b])
             for i in range(a, b):
-                for name, value in predicted.pop(i, {}).items():
+                for name, value in self.predicted.pop(i, {}).items():
                     block[name][i - a] = value
-            write_shard(arrays, a, [{name: v[k] for name, v in block.items()} for k in range(b - a)])
-            next_shard = b
-
-    if progress:
-        progress.start("predicting views", len(valid), "views")
-    with torch.no_grad():
-        for batch in loader:
-            batch = {k: v.to(dev) for k, v in batch.items()}
-            outputs = _predict_batch(nets, eft, batch, camera_run is not None)
-            for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
-                predicted[int(i)] = {name: value[row] for name, value in outputs.items()}
-            flush(final=False)
-            if progress:
-                progress.advance(len(batch["index"]))
-    flush(final=True)
-
-    attrs = base_attrs(render_config, source.attrs["houses_source"], n)
-    attrs.update(complete=True, houses=source.attrs["houses"], failures=source.attrs["failures"],
-                 prediction={"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
-                             "source": str(store),
-                             "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                             "min_height": MIN_HEIGHT})
-    group.attrs.put(attrs)
-    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)
+            self.writer.write_shard(a // self.per_shard, [{name: v[k] for name, v in block.items()}
+                                                          for k in range(b - a)])
+            self.next_shard = b

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
 
 from ..errors import SceneforgeError
+from .config import FROZEN, TrainConfig
 from .dataset import SEG_CLASSES
 from .eft import EpipolarFeatureTransformer, EpipolarGeometry, epipolar_geometry
 from .losses import camera_loss, depth_loss, height_loss, segmentation_loss
@@ -38,9 +38,6 @@ from .networks import (
     masked_layers,
 )
 
-if TYPE_CHECKING:
-    from .train import TrainConfig
-
 #: nets by name, the keys of a checkpoint's ``models``
 Nets = dict[str, nn.Module]
 
@@ -52,7 +49,8 @@ class Stage(ABC):
     name: str
     #: sample fields of its batches (:data:`sceneforge.learn.dataset.SAMPLE_FIELDS` keys)
     fields: tuple[str, ...]
-    #: stages whose trained runs (``config.<stage>_run``) it reads, frozen
+    #: stages whose trained runs (``config.<stage>_run``) it reads, frozen (as
+    #: :data:`sceneforge.learn.config.FROZEN`, which the torch-free CLI reads)
     frozen: tuple[str, ...] = ()
     #: the parts of its loss logged beside it in ``metrics.csv``
     loss_parts: tuple[str, ...] = ()
@@ -111,7 +109,7 @@ class OverheadStage(Stage):
 
     name = "overhead"
     fields = ("rgb", "depth", "camera", "overhead_height", "overhead_seg")
-    frozen = ("depth", "seg")
+    frozen = FROZEN["overhead"]
     loss_parts = ("height_l1", "seg_ce")
     predicts = ("depth", "seg", "overhead")
     uses_eft = True
@@ -133,7 +131,7 @@ class CameraStage(Stage):
     """The virtual camera proposal ``(tx, ty, sigma)`` on the frozen depth net's features (L1)."""
 
     name, fields = "camera", ("rgb", "camera")
-    frozen = ("depth",)
+    frozen = FROZEN["camera"]
     predicts, predicts_with = ("camera",), "overhead"
 
     def build(self, config, frontal):
@@ -180,5 +178,5 @@ def overhead_input(frontal: Nets, eft: EpipolarFeatureTransformer, batch: dict[s
     rgb = batch["rgb"]
     depth, seg = frontal["depth"](rgb), frontal["seg"](rgb)
     layers = batch["depth"] if true_layers else masked_layers(depth.prediction, seg.prediction)
-    geom = geometry(batch, tuple(rgb.shape[-2:]), eft.config.resolution)
+    geom = geometry(batch, tuple(rgb.shape[-2:]), eft.resolution)
     return eft(rgb, depth.features, seg.features, layers[:, :4], geom), layers, seg.prediction

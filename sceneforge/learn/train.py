@@ -26,16 +26,16 @@ import importlib.util
 import json
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
-from .dataset import SPLITS, SplitConfig, StoreDataset, ViewIndex, index_stores, split_houses
-from .eft import EFTConfig
-from .losses import LossConfig
+from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
+from .dataset import SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
+from .eft import EpipolarFeatureTransformer
 from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
 from .trainer import (
     CHECKPOINT,
@@ -47,88 +47,6 @@ from .trainer import (
     TrainProgress,
     read_metrics,
 )
-
-STAGES = ("depth", "seg", "overhead", "camera")
-EFT_LAYERS = ("predicted", "truth")
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that decides what a training run learns (not how fast: the device and
-    the number of data workers are options of :func:`train`)."""
-
-    #: the stage to train: depth, seg, overhead or camera
-    stage: str
-    #: stores to train on; their views are split by house
-    stores: tuple[str, ...]
-    #: views per batch (paper: 24)
-    batch_size: int = 24
-    #: Adam learning rate (paper: 5e-4)
-    lr: float = 5e-4
-    #: passes over the training views (paper: 40)
-    epochs: int = 40
-    #: stop after this many optimiser steps; None = after ``epochs``
-    max_steps: int | None = None
-    #: seed of the weights' initialisation and of the data order
-    seed: int = 0
-    #: multiplies every network width of the paper (tests train nets a few channels wide)
-    width: float = 1.0
-    #: BatchNorm running-statistics momentum of every net (paper: 0.005); a run of a few
-    #: hundred steps needs about 0.1 for its eval-mode statistics to settle
-    bn_momentum: float = 0.005
-    #: the depth run whose frozen net the overhead and camera stages use
-    depth_run: str | None = None
-    #: the segmentation run whose frozen net the overhead stage uses
-    seg_run: str | None = None
-    #: frontal layers the EFT reads in the overhead stage: "predicted" (the frozen nets'
-    #: depths, masked by their segmentation) or "truth" (the store's)
-    eft_layers: str = "predicted"
-    #: overhead height targets are 0 where only the floor is seen (else only object pixels
-    #: are supervised and the net never learns the floor)
-    floor_as_zero: bool = True
-    #: write a train row to the metrics every this many steps
-    log_every: int = 10
-    #: save the checkpoint every this many steps (and at the end of every epoch)
-    checkpoint_every: int = 500
-    #: the epipolar feature transform (its resolution is set from the stores)
-    eft: EFTConfig = field(default_factory=EFTConfig)
-    #: loss weights
-    loss: LossConfig = field(default_factory=LossConfig)
-    #: the house split
-    split: SplitConfig = field(default_factory=SplitConfig)
-
-    def __post_init__(self):
-        if self.stage not in STAGES:
-            raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
-        if self.eft_layers not in EFT_LAYERS:
-            raise ValueError(f"eft_layers must be one of {EFT_LAYERS}, got {self.eft_layers!r}")
-        if not self.stores:
-            raise ValueError("at least one store is needed")
-        for name in ("batch_size", "epochs", "log_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
-        if not self.lr > 0 or not self.width > 0:
-            raise ValueError(f"lr and width must be > 0, got {self.lr} and {self.width}")
-        if not 0 < self.bn_momentum <= 1:
-            raise ValueError(f"bn_momentum must be in (0, 1], got {self.bn_momentum}")
-        object.__setattr__(self, "stores", tuple(str(s) for s in self.stores))
-
-    def to_dict(self) -> dict:
-        from sceneforge.config import dataclass_to_dict
-
-        return dataclass_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict, *, what: str = "train config") -> "TrainConfig":
-        from sceneforge.config import dataclass_from_dict
-
-        try:
-            return dataclass_from_dict(cls, data)
-        except (TypeError, ValueError) as e:
-            raise SceneforgeError(f"{what}: {e}") from None
-
 
 # ------------------------------------------------------------------------- networks
 
@@ -254,8 +172,7 @@ def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
     if not has_checkpoint:
         raise SceneforgeError(f"{run}: nothing to resume (no {CHECKPOINT})")
     saved = read_config(run)
-    ours = replace(config, epochs=saved.epochs, max_steps=saved.max_steps,
-                   eft=replace(config.eft, resolution=saved.eft.resolution))
+    ours = replace(config, epochs=saved.epochs, max_steps=saved.max_steps)
     if ours != saved:
         diff = [k for k, v in saved.to_dict().items() if ours.to_dict()[k] != v]
         raise SceneforgeError(f"{run}: --resume with a different config ({', '.join(diff)}); start a new run")
@@ -321,16 +238,17 @@ def train(
     dev = resolve_device(device)
     frontal = frontal_nets(config, dev)
     index, subsets, split_record = _split(config)
-    # the overhead nets are supervised at the stores' overhead resolution
-    config = replace(config, eft=replace(config.eft, resolution=index.shapes["Wo"]))
     _write_run_files(run, config, split_record)
 
-    trainer = Trainer(config, frontal, dev)
+    stage = get_stage(config.stage)
+    # the overhead nets are supervised at the stores' overhead resolution
+    eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"]) if stage.uses_eft else None
+    trainer = Trainer(config, frontal, eft, dev)
     checkpoint = Checkpoint(run / CHECKPOINT)
     start = checkpoint.restore(trainer) if resume else Position()
-    train_set, val_set = _datasets(trainer.stage, config, subsets)
+    train_set, val_set = _datasets(stage, config, subsets)
     total = _total_steps(config, len(train_set))
-    log = MetricsLog(run, trainer.stage.loss_parts, start.step if resume else None, tensorboard)
+    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard)
     if progress:
         progress.start(total, start.step)
     loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress)

@@ -19,18 +19,16 @@ import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
 from ..errors import SceneforgeError
+from .config import TrainConfig
 from .dataset import StoreDataset
 from .eft import EpipolarFeatureTransformer
 from .stages import Nets, get_stage
-
-if TYPE_CHECKING:
-    from .train import TrainConfig
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -63,16 +61,17 @@ def _to(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
 
 class Trainer:
     """The nets ``config.stage`` trains (initialised from ``config.seed``), their optimiser,
-    and the frozen nets and EFT they read. Knows no files and no schedule."""
+    and the frozen nets and EFT (None: the stage uses none) they read. Knows no files and
+    no schedule."""
 
-    def __init__(self, config: TrainConfig, frontal: Nets, device: torch.device):
-        self.config, self.frontal, self.device = config, frontal, device
+    def __init__(self, config: TrainConfig, frontal: Nets, eft: EpipolarFeatureTransformer | None,
+                 device: torch.device):
+        self.config, self.frontal, self.eft, self.device = config, frontal, eft, device
         self.stage = get_stage(config.stage)
         torch.manual_seed(config.seed)
         self.nets = self.stage.build(config, frontal)
         for net in self.nets.values():
             net.to(device).train()
-        self.eft = EpipolarFeatureTransformer(config.eft) if self.stage.uses_eft else None
         params = [p for net in self.nets.values() for p in net.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=config.lr)
 

@@ -10,12 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..conventions import tol
 from . import HouseTriangles, Rays
-
-#: barycentric slack so that a ray through a shared edge hits both faces instead of neither
-_EDGE_EPS = 1e-12
-#: bounding boxes grow by this (metres) so that touching rays are never culled
-_BOX_PAD = 1e-6
 
 
 def moller_trumbore(origins, directions, v0, v1, v2) -> tuple[np.ndarray, np.ndarray]:
@@ -29,14 +25,14 @@ def moller_trumbore(origins, directions, v0, v1, v2) -> tuple[np.ndarray, np.nda
     p = np.cross(directions, e2)
     det = np.einsum("ij,ij->i", e1, p)
     area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
-    ok = np.abs(det) > 1e-12 * area2 * np.linalg.norm(directions, axis=1)
+    ok = np.abs(det) > tol.ray_parallel * area2 * np.linalg.norm(directions, axis=1)
     inv = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
     s = origins - v0
     u = np.einsum("ij,ij->i", s, p) * inv
     q = np.cross(s, e1)
     v = np.einsum("ij,ij->i", directions, q) * inv
     t = np.einsum("ij,ij->i", e2, q) * inv
-    hit = ok & (u >= -_EDGE_EPS) & (v >= -_EDGE_EPS) & (u + v <= 1 + _EDGE_EPS) & (t >= 0)
+    hit = ok & (u >= -tol.ray_edge) & (v >= -tol.ray_edge) & (u + v <= 1 + tol.ray_edge) & (t >= 0)
     return hit, t
 
 
@@ -65,7 +61,7 @@ class ReferenceBackend:
         c = self._corners[self._faces]
         lo = np.minimum.reduceat(c.min(axis=1), self._leaf_lo)
         hi = np.maximum.reduceat(c.max(axis=1), self._leaf_lo)
-        self._box_lo, self._box_hi = lo - _BOX_PAD, hi + _BOX_PAD
+        self._box_lo, self._box_hi = lo - tol.leaf_pad, hi + tol.leaf_pad
 
     def _candidates(self, origins: np.ndarray, directions: np.ndarray):
         """(ray, face) pairs whose ray crosses the face's leaf box: two (p,) int64 arrays."""

@@ -10,12 +10,17 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import NYU40_NAMES, nyu40_id
-from ..errors import HouseError
-from .model import House, Level, Material, Room, make_instance
+from ...conventions import NYU40_NAMES, nyu40_id
+from ...errors import HouseError
+from ..model import House, Level, Material, Room, make_instance
+from .base import Format, HouseSource
+
+if TYPE_CHECKING:
+    from .. import LoadOptions
 
 FORMAT_TAG = "sceneforge-house"
 SCHEMA_VERSION = 1
@@ -36,6 +41,16 @@ def is_native(path: Path) -> bool:
     except OSError:
         return False
     return FORMAT_TAG.encode() in head
+
+
+def list_houses(path: Path) -> list[HouseSource]:
+    """The house of a ``house.json`` or its folder; its id is the folder's name."""
+    house_dir = path.parent if path.is_file() else path
+    return [HouseSource(house_dir.name, FORMAT.name, house_dir)]
+
+
+def _load(source: HouseSource, options: LoadOptions) -> House:
+    return load_house(source.path, strict=options.strict)
 
 
 def write_house(house: House, out_dir: str | Path) -> Path:
@@ -153,3 +168,6 @@ def load_house(path: str | Path, *, strict: bool = False) -> House:
             ),
         )
     return house.check_not_empty()
+
+
+FORMAT = Format("sceneforge", detect=is_native, list=list_houses, load=_load)

@@ -1,4 +1,4 @@
-"""PLY scenes (ASCII or binary, either byte order): read into meshes, write a house.
+"""PLY scenes (ASCII or binary, either byte order), read into meshes.
 
 Reading: one mesh per value of a per-face (else per-vertex: a face takes its first
 corner's) ``instance``, ``instance_id``, ``object_id`` or ``obj_id`` property, in
@@ -7,9 +7,6 @@ increasing order; without such a property, one mesh. Names come from ``comment i
 several). Polygons are fanned; per-face or per-vertex colours give the material (the most
 frequent colour of a mesh), ``s``/``t`` (or ``u``/``v``) the uv, a ``comment TextureFile``
 the texture.
-
-Writing keeps instances (the face property ``instance`` and its comment line), geometry,
-base colours (as face colours) and uv, not textures.
 """
 
 from __future__ import annotations
@@ -19,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..model import Material
 from .meshio import Mesh, MeshFileError, Warn, compact, fan, find_image, ignore
-from .model import House, Material
 
-__all__ = ["read_ply", "write_ply"]
+__all__ = ["read_ply"]
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -247,45 +244,3 @@ def _ply_colors(face: dict, vertex: dict) -> tuple[np.ndarray | None, bool]:
             rgba = np.column_stack([*rgb, alpha]).astype(np.float64)
             return rgba / full, per_face
     return None, False
-
-
-# --------------------------------------------------------------------------- writing
-
-
-def write_ply(path: Path, house: House, names: list[str]) -> None:
-    """Write ``house`` as a binary little-endian PLY, instance ``k`` named ``names[k]``.
-
-    Vertices are float64 (exact), uv float32 (only when every instance has uv), colours
-    the base colour rounded to bytes.
-    """
-    with_uv = bool(house.instances) and all(i.uv is not None for i in house.instances)
-    vertex_fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    vertex_fields += [("s", "<f4"), ("t", "<f4")] if with_uv else []
-    face_dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("instance", "<i4"),
-                           ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")])
-    vertex_blocks, face_blocks, offset = [], [], 0
-    for inst in house.instances:
-        block = np.zeros(len(inst.vertices), vertex_fields)
-        block["x"], block["y"], block["z"] = inst.vertices.T
-        if with_uv:
-            block["s"], block["t"] = inst.uv.T
-        vertex_blocks.append(block)
-        faces = np.zeros(len(inst.faces), face_dtype)
-        faces["n"], faces["v"], faces["instance"] = 3, inst.faces + offset, inst.id
-        rgba = np.clip(np.round(np.asarray(inst.material.base_color) * 255), 0, 255)
-        for channel, value in zip(("red", "green", "blue", "alpha"), rgba, strict=True):
-            faces[channel] = value
-        face_blocks.append(faces)
-        offset += len(inst.vertices)
-    vertices = np.concatenate(vertex_blocks) if vertex_blocks else np.zeros(0, vertex_fields)
-    faces = np.concatenate(face_blocks) if face_blocks else np.zeros(0, face_dtype)
-    ply_type = {"<f8": "double", "<f4": "float"}
-    lines = ["ply", "format binary_little_endian 1.0",
-             f"comment sceneforge house {house.id}: instance <value> <nyu40 class>__<name>"]
-    lines += [f"comment instance {i.id} {name}" for i, name in zip(house.instances, names, strict=True)]
-    lines += [f"element vertex {len(vertices)}"]
-    lines += [f"property {ply_type[t]} {n}" for n, t in vertex_fields]
-    lines += [f"element face {len(faces)}", "property list uchar int vertex_indices", "property int instance",
-              "property uchar red", "property uchar green", "property uchar blue", "property uchar alpha",
-              "end_header"]
-    path.write_bytes(("\n".join(lines) + "\n").encode() + vertices.tobytes() + faces.tobytes())

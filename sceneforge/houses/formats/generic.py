@@ -1,9 +1,9 @@
-"""Generic scenes: glTF 2.0 (``.gltf``/``.glb``), Wavefront OBJ and PLY, read and written.
+"""Generic scenes: glTF 2.0 (``.gltf``/``.glb``), Wavefront OBJ and PLY, read as houses.
 
 A generic scene has no rooms and no categories, only named meshes. Each format module
-turns its file into meshes (:mod:`~sceneforge.houses.gltf`: one per node,
-:mod:`~sceneforge.houses.wavefront`: one per ``o`` object or ``g`` group,
-:mod:`~sceneforge.houses.ply`: one per ``instance`` property value) and writes a house;
+turns its file into meshes (:mod:`~sceneforge.houses.formats.gltf`: one per node,
+:mod:`~sceneforge.houses.formats.obj`: one per ``o`` object or ``g`` group,
+:mod:`~sceneforge.houses.formats.ply`: one per ``instance`` property value);
 this module makes instances of the meshes and names them:
 
 - The category of an instance comes from its name through a :class:`PatternMap` (the
@@ -11,7 +11,9 @@ this module makes instances of the meshes and names them:
   Blender-style copy numbers (``Chair.001`` → ``Chair``), so that rules on source labels
   (fireplace, plant, ...) see the object's kind. Persons and plants are dropped.
 - ``LoadOptions.scale`` and ``up_axis`` take the source's units and axes to metres, +Y up.
-- The writers name every instance ``<nyu40 name>__<name>``, or
+- The three formats (:data:`GLTF`, :data:`OBJ`, :data:`PLY`, as the registry holds them) are
+  recognised by their file suffixes (:data:`SUFFIXES`) and all read by :func:`load_house`.
+- The writers (:mod:`sceneforge.testing.generic`) name every instance ``<nyu40 name>__<name>``, or
   ``<nyu40 name>__<label>__<name>`` when the label is not the one the name gives (or the
   name holds ``__``): the bundled pattern map sends the tag back to the same class, and the
   loader takes tag and label off the name.
@@ -25,17 +27,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..conventions import NYU40_NAMES, is_dropped
-from ..errors import HouseError, SceneforgeError
-from . import MESH_SUFFIXES as SUFFIXES
-from .categories import PatternMap, resolve
+from ...conventions import NYU40_NAMES, is_dropped
+from ...errors import HouseError, SceneforgeError
+from ..categories import PatternMap, resolve
+from ..model import House, Instance, make_instance
+from .base import Format, HouseSource
 from .meshio import Mesh, MeshFileError
-from .model import House, Instance, make_instance
 
 if TYPE_CHECKING:
-    from . import LoadOptions
+    from .. import LoadOptions
 
-__all__ = ["SUFFIXES", "load_house", "tagged_name", "write_house"]
+__all__ = ["GLTF", "OBJ", "PLY", "SUFFIXES", "load_house", "tagged_name"]
+
+#: file suffix → the generic format it is
+SUFFIXES = {".gltf": "gltf", ".glb": "gltf", ".obj": "obj", ".ply": "ply"}
 
 #: rotation taking a Z-up source to +Y up, right-handed: (x, y, z) → (x, z, -y)
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -53,10 +58,10 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
     file and the problem for anything unreadable, and :class:`SceneforgeError` for a bad
     option.
     """
-    from . import LoadOptions
+    from .. import LoadOptions
     from .gltf import read_gltf
+    from .obj import read_objects
     from .ply import read_ply
-    from .wavefront import read_objects
 
     path = Path(path)
     options = options or LoadOptions()
@@ -77,37 +82,6 @@ def load_house(path: str | Path, options: LoadOptions | None = None) -> House:
     if not count:
         raise HouseError(builder.house.id, path, "no faces")
     return builder.house.check_not_empty()
-
-
-def write_house(house: House, path: str | Path) -> Path:
-    """Write ``house`` as ``.gltf``, ``.glb``, ``.obj`` (+ ``.mtl``) or ``.ply`` (by suffix).
-
-    Every format keeps instances (one node / ``o`` object / PLY ``instance`` value each),
-    categories (through :func:`tagged_name`) and geometry. glTF and OBJ keep base colours,
-    textures and uv; PLY keeps base colours (as face colours) and uv, not textures. Rooms
-    are not kept. glTF stores positions as float32, relative to each instance's centre
-    (about 6e-8 × the instance's size of error). Returns ``path``.
-    """
-    from .gltf import write_gltf
-    from .ply import write_ply
-    from .wavefront import write_obj
-
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
-        raise SceneforgeError(
-            f"{path}: cannot write a house as {suffix!r} (use one of {', '.join(SUFFIXES)})")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    names = _unique_tagged_names(house.instances)
-    if suffix in (".gltf", ".glb"):
-        write_gltf(path, house, names)
-    elif suffix == ".obj":
-        write_obj(path, [Mesh(i.vertices, i.faces, i.uv, i.material, name)
-                         for i, name in zip(house.instances, names, strict=True)],
-                  comment=f"sceneforge house {house.id}: objects are named <nyu40 class>__<name>")
-    else:
-        write_ply(path, house, names)
-    return path
 
 
 def tagged_name(instance: Instance) -> str:
@@ -135,17 +109,6 @@ def _split_name(node_name: str) -> tuple[str, str]:
         return name, label
     rest = node_name[tag.end():]
     return rest, _label_of(rest)
-
-
-def _unique_tagged_names(instances: list[Instance]) -> list[str]:
-    """Tagged names, made unique with ``.2``, ``.3``... (OBJ would merge equal names)."""
-    seen: dict[str, int] = {}
-    out = []
-    for inst in instances:
-        name = tagged_name(inst)
-        seen[name] = seen.get(name, 0) + 1
-        out.append(name if seen[name] == 1 else f"{name}.{seen[name]}")
-    return out
 
 
 class _Builder:
@@ -182,3 +145,20 @@ class _Builder:
         v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) @ self.to_world.T
         make_instance(self.house, name=clean, category=category, label=label, room_id=None,
                       vertices=v, faces=mesh.faces, file=self.path, material=mesh.material, uv=mesh.uv)
+
+
+def _load(source: HouseSource, options: LoadOptions) -> House:
+    return load_house(source.path, options)
+
+
+def _generic_format(name: str) -> Format:
+    """The generic format ``name``: files with one of its suffixes, read by :func:`load_house`."""
+    suffixes = tuple(s for s, fmt in SUFFIXES.items() if fmt == name)
+
+    def detect(path: Path) -> bool:
+        return path.suffix.lower() in suffixes and not path.is_dir()
+
+    return Format(name, detect=detect, load=_load)
+
+
+GLTF, OBJ, PLY = _generic_format("gltf"), _generic_format("obj"), _generic_format("ply")

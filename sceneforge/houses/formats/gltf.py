@@ -1,4 +1,4 @@
-"""glTF 2.0 scenes (``.gltf``/``.glb``): read into meshes, write a house.
+"""glTF 2.0 scenes (``.gltf``/``.glb``), read into meshes.
 
 Reading: one mesh per node that has triangles, in depth-first node order, node transforms
 applied (a mirroring transform reverses the winding); the primitives of a node's mesh are
@@ -11,7 +11,7 @@ sceneforge needs the glTF node names, a deterministic order and the image file p
 fallback when an image is missing, e.g. the ``.dds`` files of ``MSFT_texture_dds``).
 
 glTF's ``v`` runs down the image; sceneforge's uv follow OBJ/OpenGL (``v = 0`` at the
-bottom row), so ``v`` is flipped on the way in and out.
+bottom row), so ``v`` is flipped on the way in (and out, in :mod:`sceneforge.testing.gltf`).
 """
 
 from __future__ import annotations
@@ -26,31 +26,28 @@ from urllib.parse import unquote
 
 import numpy as np
 
+from ..model import Material
 from .meshio import (
     Mesh,
     MeshFileError,
     Warn,
-    distinct_materials,
-    encode_texture,
     face_areas,
     fan,
     find_image,
     ignore,
     place,
     quaternion_matrix,
-    texture_suffix,
 )
-from .model import House, Material
 
-__all__ = ["read_gltf", "write_gltf"]
+__all__ = ["read_gltf"]
 
 # --------------------------------------------------------------------------- glTF reading
 
-_GLB_MAGIC, _GLB_JSON, _GLB_BIN = b"glTF", 0x4E4F534A, 0x004E4942
+#: a GLB file's magic and its JSON and BIN chunk types
+GLB_MAGIC, GLB_JSON, GLB_BIN = b"glTF", 0x4E4F534A, 0x004E4942
 _COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _TRIANGLES, _STRIP, _FAN = 4, 5, 6
-_MIME_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 _UNSUPPORTED_REQUIRED = {"KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression"}
 
 
@@ -64,7 +61,7 @@ class _Gltf:
         except OSError as e:
             raise MeshFileError(f"cannot read: {e.strerror or e}") from None
         self.bin_chunk: bytes | None = None
-        if data[:4] == _GLB_MAGIC:
+        if data[:4] == GLB_MAGIC:
             text = self._split_glb(data)
         else:
             text = data
@@ -100,9 +97,9 @@ class _Gltf:
                     f"GLB is truncated: a chunk of {size} bytes at {offset} ends past {length}")
             chunk = data[offset:offset + size]
             offset += size
-            if kind == _GLB_JSON and json_chunk is None:
+            if kind == GLB_JSON and json_chunk is None:
                 json_chunk = chunk
-            elif kind == _GLB_BIN and self.bin_chunk is None:
+            elif kind == GLB_BIN and self.bin_chunk is None:
                 self.bin_chunk = chunk
         if json_chunk is None:
             raise MeshFileError("GLB has no JSON chunk")
@@ -354,99 +351,3 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         raise MeshFileError(f"malformed glTF ({type(e).__name__}: {e})") from None
-
-
-# --------------------------------------------------------------------------- glTF writing
-
-
-def write_gltf(path: Path, house: House, names: list[str]) -> None:
-    """Write ``house`` as ``.gltf`` (+ ``.bin`` and image files) or ``.glb`` (by suffix).
-
-    One node and mesh per instance, named ``names[k]``; positions are float32 relative to
-    the instance's centre, which is the node's translation. Textures other than PNG and JPEG
-    (the two types core glTF allows) are re-encoded as PNG.
-    """
-    binary = path.suffix.lower() == ".glb"
-    materials, material_index, textures = distinct_materials([i.material for i in house.instances])
-    chunks: list[bytes] = []
-    views: list[dict] = []
-    accessors: list[dict] = []
-
-    def view(data: bytes, target: int | None = None) -> int:
-        offset = sum(len(c) for c in chunks)
-        chunks.append(data + b"\0" * (-len(data) % 4))  # 4-byte alignment for float32/uint32
-        views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
-                     | ({"target": target} if target else {}))
-        return len(views) - 1
-
-    def accessor(array: np.ndarray, component: int, kind: str, target: int, bounds: bool = False) -> int:
-        acc = {"bufferView": view(np.ascontiguousarray(array).tobytes(), target), "componentType": component,
-               "count": int(len(array)), "type": kind}
-        if bounds:
-            acc |= {"min": array.min(axis=0).tolist(), "max": array.max(axis=0).tolist()}
-        accessors.append(acc)
-        return len(accessors) - 1
-
-    images = []
-    for k, tex in enumerate(textures):
-        suffix = texture_suffix(tex) if texture_suffix(tex) in _MIME_TYPES else ".png"
-        data = encode_texture(tex, suffix)
-        if binary:
-            images.append({"bufferView": view(data), "mimeType": _MIME_TYPES[suffix]})
-        else:
-            file = f"{path.stem}_texture{k}{suffix}"
-            (path.parent / file).write_bytes(data)
-            images.append({"uri": file})
-    texture_index = {id(t): k for k, t in enumerate(textures)}
-    gl_materials = []
-    for m in materials:
-        pbr = {"baseColorFactor": list(m.base_color), "metallicFactor": 0.0, "roughnessFactor": 1.0}
-        if m.texture is not None:
-            pbr["baseColorTexture"] = {"index": texture_index[id(m.texture)]}
-        gl_materials.append({"pbrMetallicRoughness": pbr})
-
-    meshes, nodes = [], []
-    for inst, name, mat in zip(house.instances, names, material_index, strict=True):
-        # float32 positions relative to the instance's centre (kept in float64 as the node's
-        # translation) lose far less than world coordinates would
-        center = (inst.vertices.min(axis=0) + inst.vertices.max(axis=0)) / 2
-        local = (inst.vertices - center).astype("<f4")
-        attributes = {"POSITION": accessor(local, 5126, "VEC3", 34962, bounds=True)}
-        if inst.uv is not None:
-            uv = np.column_stack([inst.uv[:, 0], 1.0 - inst.uv[:, 1]]).astype("<f4")
-            attributes["TEXCOORD_0"] = accessor(uv, 5126, "VEC2", 34962)
-        indices = accessor(inst.faces.astype("<u4").ravel(), 5125, "SCALAR", 34963)
-        primitive = {"attributes": attributes, "indices": indices, "material": mat}
-        meshes.append({"name": name, "primitives": [primitive]})
-        nodes.append({"name": name, "mesh": len(meshes) - 1, "translation": center.tolist()})
-
-    blob = b"".join(chunks)
-    buffer = {"byteLength": len(blob)}
-    if not binary:
-        buffer["uri"] = f"{path.stem}.bin"
-        (path.parent / buffer["uri"]).write_bytes(blob)
-    doc = {
-        "asset": {"version": "2.0", "generator": "sceneforge"},
-        "extras": {"sceneforge_house": house.id},
-        "scene": 0,
-        "scenes": [{"nodes": list(range(len(nodes)))}],
-        "nodes": nodes,
-        "meshes": meshes,
-        "materials": gl_materials,
-        "accessors": accessors,
-        "bufferViews": views,
-        "buffers": [buffer] if blob else [],
-    }
-    if textures:
-        doc |= {"images": images, "textures": [{"source": k} for k in range(len(textures))]}
-    text = json.dumps(doc, separators=(",", ":")).encode()
-    if not binary:
-        path.write_bytes(text)
-        return
-    text += b" " * (-len(text) % 4)
-    body = struct.pack("<II", len(text), _GLB_JSON) + text
-    if blob:
-        body += struct.pack("<II", len(blob), _GLB_BIN) + blob
-    path.write_bytes(struct.pack("<4sII", _GLB_MAGIC, 2, 12 + len(body)) + body)
-
-

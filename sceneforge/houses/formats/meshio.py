@@ -1,20 +1,19 @@
-"""What every mesh file reader and writer shares, whatever the format.
+"""What every mesh file reader shares, whatever the format.
 
 A reader turns a file into :class:`Mesh` records (source units and axes, no sceneforge
 categories) and reports what it cannot read as :class:`MeshFileError`; the loader that
-called it names the house. Writers share the material and texture helpers.
+called it names the house. The writers (tests only) are in :mod:`sceneforge.testing`.
 """
 
 from __future__ import annotations
 
-import io
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .model import Material
+from ..model import Material
 
 #: Receives each problem a reader tolerated (a missing texture, a dropped material, ...).
 Warn = Callable[[str], None]
@@ -119,47 +118,3 @@ def find_image(path: Path, warn: Warn, warn_missing: bool = False) -> Path | Non
     if warn_missing:
         warn(f"texture {path.name} is missing; no texture")
     return None
-
-
-def distinct_materials(materials: list[Material | None]) -> tuple[list[Material], list[int], list]:
-    """Equal materials (same colour, same texture object) written once.
-
-    Returns the distinct materials, the index of each input among them (-1 for None) and the
-    distinct textures in order of first use.
-    """
-    keys: dict = {}
-    textures: dict[int, object] = {}
-    index = []
-    for m in materials:
-        if m is None:
-            index.append(-1)
-            continue
-        if m.texture is not None:
-            textures.setdefault(id(m.texture), m.texture)
-        key = (tuple(float(c) for c in m.base_color), id(m.texture) if m.texture is not None else None)
-        index.append(keys.setdefault(key, len(keys)))
-    distinct = [Material(base_color=color, texture=textures.get(tex_id)) for color, tex_id in keys]
-    return distinct, index, list(textures.values())
-
-
-def texture_suffix(texture) -> str:
-    """The file suffix a texture keeps when written: its file's, ``.png`` for an image in memory."""
-    return Path(texture).suffix.lower() if isinstance(texture, (str, Path)) else ".png"
-
-
-def encode_texture(texture, suffix: str) -> bytes:
-    """A :class:`Material` texture (an image file path or a PIL image) as an image file of type
-    ``suffix``: a file of that type as it is, anything else re-encoded."""
-    if isinstance(texture, (str, Path)) and texture_suffix(texture) == suffix.lower():
-        return Path(texture).read_bytes()
-    from PIL import Image
-
-    image = Image.open(texture) if isinstance(texture, (str, Path)) else texture
-    buf = io.BytesIO()
-    image.save(buf, format=Image.registered_extensions()[suffix.lower()])
-    return buf.getvalue()
-
-
-def save_texture(texture, dst: Path) -> None:
-    """Write a :class:`Material` texture to ``dst`` as the image type its suffix names."""
-    dst.write_bytes(encode_texture(texture, dst.suffix))

@@ -1,0 +1,110 @@
+"""Scoring whole stores: which views, checked pairs of prediction and truth, per-view loops.
+
+A store here is anything :func:`sceneforge.store.open_store` returns (``len``, ``names``,
+``array``, ``view(i)``, ``mesh(i)``); this module reads views from it and never opens one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import SceneforgeError
+from .inputs import EvalView, GroundTruthMesh
+from .voxels import VoxelConfig, VoxelScore, score_voxels
+
+
+def views_to_score(store, limit: int | None = None) -> list[int]:
+    """Indices of the views to score: those among the first ``limit`` whose ground truth
+    did not fail (a failed view is blank in the store)."""
+    n = len(store) if limit is None else min(limit, len(store))
+    if "valid" not in store.names:
+        return list(range(n))
+    return np.flatnonzero(np.asarray(store.array("valid")[:n], dtype=bool)).tolist()
+
+
+def matching_view(pred, gt, i: int) -> dict:
+    """View ``i`` of ``pred``, after checking that it is view ``i`` of ``gt``.
+
+    Raises :class:`SceneforgeError` when ``pred`` has more views than ``gt`` or view ``i``
+    shows another house, camera or camera pose.
+    """
+    if len(pred) > len(gt):
+        raise SceneforgeError(f"the predictions have {len(pred)} views but the ground truth only {len(gt)}")
+    p, g = pred.view(i), gt.view(i)
+    for key in ("house_id", "camera_id"):
+        if str(p[key]) != str(g[key]):
+            raise SceneforgeError(f"view {i}: {key} {p[key]} in the predictions, {g[key]} in the truth")
+    if not np.allclose(p["cam_to_world"], g["cam_to_world"], atol=1e-6):
+        raise SceneforgeError(f"view {i}: the predictions come from another camera pose than the truth")
+    return p
+
+
+def coverage_views(store, limit: int | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+    """``(index, view, ground-truth mesh)`` of every view of ``store`` to score, read lazily
+    (what :func:`~sceneforge.evaluate.evaluate_views` takes)."""
+    for i in views_to_score(store, limit):
+        yield i, EvalView.from_arrays(store.view(i)), GroundTruthMesh.from_arrays(store.mesh(i))
+
+
+def prediction_views(pred, gt, limit: int | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+    """``(index, predicted view, ground-truth mesh)``: the layers and cameras of ``pred``
+    against the meshes of ``gt``, view ``i`` of one checked to be view ``i`` of the other."""
+    for i in views_to_score(pred, limit):
+        yield i, EvalView.from_arrays(matching_view(pred, gt, i)), GroundTruthMesh.from_arrays(gt.mesh(i))
+
+
+@dataclass(frozen=True)
+class ViewVoxelScore:
+    """The voxel score of view ``index`` (house, camera) of a store."""
+
+    index: int
+    house_id: str
+    camera_id: int
+    score: VoxelScore
+
+
+@dataclass(frozen=True, eq=False)
+class VoxelReport:
+    """Per-view voxel scores of a store and their mean."""
+
+    views: tuple[ViewVoxelScore, ...]
+
+    @property
+    def ious(self) -> np.ndarray:
+        """(n,) float64 per-view IoU, NaN for a view without objects in its frustum."""
+        return np.asarray([v.score.iou for v in self.views], dtype=np.float64)
+
+    @property
+    def scored(self) -> int:
+        """Views with a defined IoU."""
+        return int(np.isfinite(self.ious).sum())
+
+    @property
+    def mean(self) -> float:
+        """Mean IoU over the scored views (NaN when none)."""
+        ious = self.ious[np.isfinite(self.ious)]
+        return float(ious.mean()) if len(ious) else float("nan")
+
+
+def score_store_voxels(layers, truth=None, config: VoxelConfig | None = None, limit: int | None = None,
+                       on_view: Callable[[ViewVoxelScore], None] | None = None) -> VoxelReport:
+    """Voxel IoU of the layers of every view of ``layers`` against the solid object mesh of
+    the same view of ``truth`` (default: ``layers`` itself, i.e. the ground-truth layers).
+
+    on_view : called with each view's score as soon as it is known
+    """
+    config = config or VoxelConfig()
+    views = []
+    for i in views_to_score(layers, limit):
+        view = layers.view(i) if truth is None else matching_view(layers, truth, i)
+        mesh = (layers if truth is None else truth).mesh(i)
+        score = ViewVoxelScore(i, str(view["house_id"]), int(view["camera_id"]),
+                               score_voxels(view["depth"], view["K"], view["cam_to_world"],
+                                            GroundTruthMesh.from_arrays(mesh).objects, config))
+        views.append(score)
+        if on_view:
+            on_view(score)
+    return VoxelReport(tuple(views))

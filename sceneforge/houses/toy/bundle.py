@@ -1,0 +1,57 @@
+"""Batches of toy houses written in sceneforge's format, and the bundled set.
+
+Regenerate the bundled houses with ``python -m sceneforge.houses.toy --bundle``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import SceneforgeError
+from .. import bundled_toy_dir
+from .house import check_seed, generate_house
+
+#: the bundled houses are ``toy_0_000`` .. ``toy_0_002``
+BUNDLE_SEED = 0
+BUNDLE_COUNT = 3
+
+
+def house_seed(seed: int, index: int) -> int:
+    """Seed of house ``index`` of a batch generated with ``seed`` (independent streams)."""
+    return int(np.random.SeedSequence(seed, spawn_key=(index,)).generate_state(1, np.uint64)[0])
+
+
+def toy_house_id(seed: int, index: int) -> str:
+    return f"toy_{seed}_{index:03d}"
+
+
+def write_toy_houses(out: str | Path, count: int, seed: int, progress=None) -> list[Path]:
+    """Write ``count`` toy houses into ``out/<id>/`` in sceneforge's format; return the folders.
+
+    House ``i`` has id ``toy_<seed>_<i:03d>`` and seed :func:`house_seed` ``(seed, i)``.
+    ``progress(house, folder)`` is called after each house is written.
+    """
+    from ..formats.native import write_house
+
+    seed = check_seed(seed)
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
+        raise SceneforgeError(f"toy houses: count must be a positive integer, got {count!r}")
+    folders = []
+    for i in range(count):
+        house = generate_house(house_seed(seed, i), toy_house_id(seed, i))
+        folder = Path(out) / house.id
+        try:
+            write_house(house, folder)
+        except OSError as e:
+            raise SceneforgeError(f"toy houses: cannot write {folder}: {e.strerror or e}") from None
+        folders.append(folder)
+        if progress is not None:
+            progress(house, folder)
+    return folders
+
+
+def write_bundle(out: str | Path | None = None) -> list[Path]:
+    """(Re)write the bundled toy houses (into the package unless ``out`` is given)."""
+    return write_toy_houses(out or bundled_toy_dir(), BUNDLE_COUNT, BUNDLE_SEED)

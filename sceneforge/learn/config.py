@@ -1,0 +1,201 @@
+"""The configs of training and prediction runs, without PyTorch (SPEC §10).
+
+They live here, not beside the code that runs them, so that ``sceneforge train --help``
+and ``schemas/train.schema.json`` are built from them without importing torch; the
+modules that use them re-export them (``sceneforge.learn.train.TrainConfig``,
+``.eft.EFTConfig``, ``.losses.LossConfig``, ``.dataset.SplitConfig``).
+"""
+
+from __future__ import annotations
+
+import typing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Literal
+
+#: the stages of the paper's training, in the order they are trained
+Stage = Literal["depth", "seg", "overhead", "camera"]
+STAGES: tuple[str, ...] = typing.get_args(Stage)
+#: the frozen runs each stage reads, by the stage they come from
+FROZEN: dict[str, tuple[str, ...]] = {"overhead": ("depth", "seg"), "camera": ("depth",)}
+#: what the overhead stage's EFT reads: the frozen nets' layers or the store's
+EFTLayers = Literal["predicted", "truth"]
+EFT_LAYERS: tuple[str, ...] = typing.get_args(EFTLayers)
+#: how the EFT gates features along a ray
+Gating = Literal["volume", "surface"]
+GATINGS: tuple[str, ...] = typing.get_args(Gating)
+
+
+@dataclass(frozen=True)
+class EFTConfig:
+    """How frontal features are carried to the overhead view."""
+
+    #: EFT gating: "volume" (mean along ray segments, the paper's choice) or "surface"
+    #: (z-buffer of their ends)
+    gating: Gating = "volume"
+    #: samples per overhead pixel along a segment's major axis (1 ≈ a Bresenham line)
+    samples_per_pixel: float = 1.0
+    #: rays are sampled in chunks of at most this many samples (bounds memory)
+    max_samples: int = 1 << 21
+
+    def __post_init__(self):
+        if self.gating not in GATINGS:
+            raise ValueError(f"gating must be one of {GATINGS}, got {self.gating!r}")
+        if not self.samples_per_pixel > 0:
+            raise ValueError(f"samples_per_pixel must be > 0, got {self.samples_per_pixel}")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights and parameters of the losses."""
+
+    #: Huber threshold δ of the depth loss, metres (paper: 1)
+    huber_delta: float = 1.0
+    #: weight of the envelope layer D5 in the depth loss (D1..D4 weigh 1)
+    envelope_weight: float = 0.5
+    #: weight of the overhead segmentation loss next to the overhead height loss
+    overhead_seg_weight: float = 1.0
+
+
+@dataclass(frozen=True)
+class SplitConfig:
+    """How houses are divided into train, validation and test."""
+
+    #: fraction of the houses (rounded down) held out for validation
+    val_fraction: float = 0.1
+    #: fraction of the houses (rounded down) held out for testing
+    test_fraction: float = 0.1
+    #: seed of the shuffle that assigns houses to splits
+    seed: int = 0
+
+    def __post_init__(self):
+        v, t = self.val_fraction, self.test_fraction
+        if not (0 <= v and 0 <= t and v + t < 1):
+            raise ValueError(f"val and test fractions must be >= 0 and sum below 1, got "
+                             f"{self.val_fraction} and {self.test_fraction}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides what a training run learns (not how fast: the device and
+    the number of data workers are options of :func:`~sceneforge.learn.train.train`)."""
+
+    #: the stage to train: the frontal depth or segmentation net, then the overhead nets
+    #: (on the frozen frontal nets) or the virtual camera proposal (on the frozen depth net)
+    stage: Stage
+    #: stores to train on; their views are split by house
+    stores: tuple[str, ...]
+    #: views per batch (paper: 24)
+    batch_size: int = 24
+    #: Adam learning rate (paper: 5e-4)
+    lr: float = 5e-4
+    #: passes over the training views (paper: 40)
+    epochs: int = 40
+    #: stop after this many optimiser steps; None = after ``epochs``
+    max_steps: int | None = None
+    #: seed of the weights' initialisation and of the data order
+    seed: int = 0
+    #: multiplies every network width of the paper (e.g. 0.25 for a quick run; tests train
+    #: nets a few channels wide)
+    width: float = 1.0
+    #: BatchNorm running-statistics momentum of every net (paper: 0.005); a run of a few
+    #: hundred steps needs about 0.1 for its eval-mode statistics to settle
+    bn_momentum: float = 0.005
+    #: the depth run whose frozen net the overhead and camera stages use
+    depth_run: str | None = None
+    #: the segmentation run whose frozen net the overhead stage uses
+    seg_run: str | None = None
+    #: frontal layers the EFT reads in the overhead stage: "predicted" (the frozen nets'
+    #: depths, masked by their segmentation) or "truth" (the store's)
+    eft_layers: EFTLayers = "predicted"
+    #: overhead height targets are 0 where only the floor is seen (else only object pixels
+    #: are supervised and the net never learns the floor)
+    floor_as_zero: bool = True
+    #: write a train row to the metrics every this many steps
+    log_every: int = 10
+    #: save the checkpoint every this many steps (and at the end of every epoch)
+    checkpoint_every: int = 500
+    #: the epipolar feature transform (its resolution is the stores' overhead resolution)
+    eft: EFTConfig = field(default_factory=EFTConfig)
+    #: loss weights
+    loss: LossConfig = field(default_factory=LossConfig)
+    #: the house split
+    split: SplitConfig = field(default_factory=SplitConfig)
+
+    def __post_init__(self):
+        if self.stage not in STAGES:
+            raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
+        if self.eft_layers not in EFT_LAYERS:
+            raise ValueError(f"eft_layers must be one of {EFT_LAYERS}, got {self.eft_layers!r}")
+        if not self.stores:
+            raise ValueError("at least one store is needed")
+        for name in ("batch_size", "epochs", "log_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
+        if not self.lr > 0 or not self.width > 0:
+            raise ValueError(f"lr and width must be > 0, got {self.lr} and {self.width}")
+        if not 0 < self.bn_momentum <= 1:
+            raise ValueError(f"bn_momentum must be in (0, 1], got {self.bn_momentum}")
+        object.__setattr__(self, "stores", tuple(str(s) for s in self.stores))
+
+    def to_dict(self) -> dict:
+        """The resolved config as JSON-ready data (what ``RUN/config.json`` holds)."""
+        from sceneforge.config import dataclass_to_dict
+
+        return dataclass_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, *, what: str = "train config") -> "TrainConfig":
+        """Validate ``data`` against ``schemas/train.schema.json`` and build the config.
+
+        Raises :class:`SceneforgeError` naming ``what`` and the problem.
+        """
+        from sceneforge.config import build_config
+
+        return build_config(cls, _without_legacy_keys(data), schema="train", what=what)
+
+    def with_frozen_runs(self, root: str | Path) -> "TrainConfig":
+        """The config with every frozen run its stage reads and that is not set taken from
+        ``root/<stage>`` (``runs/depth`` for ``root="runs"``)."""
+        unset = {f"{s}_run": str(Path(root) / s) for s in FROZEN.get(self.stage, ())
+                 if getattr(self, f"{s}_run") is None}
+        return replace(self, **unset)
+
+
+def _without_legacy_keys(data: dict) -> dict:
+    """``data`` without keys that older runs saved and that are no longer settings: the
+    EFT's ``resolution`` now always comes from the stores' overhead size."""
+    eft = data.get("eft")
+    if isinstance(eft, dict) and "resolution" in eft:
+        data = {**data, "eft": {k: v for k, v in eft.items() if k != "resolution"}}
+    return data
+
+
+@dataclass(frozen=True)
+class PredictConfig:
+    """How a trained run's predictions are made (what they are is the run's own config)."""
+
+    #: views per batch
+    batch_size: int = 8
+    #: a camera proposal run: place the overhead cameras from its predictions instead of
+    #: the store's
+    camera_run: str | None = None
+
+    def __post_init__(self):
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
+
+    def to_dict(self) -> dict:
+        from sceneforge.config import dataclass_to_dict
+
+        return dataclass_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, *, what: str = "predict config") -> "PredictConfig":
+        """Validate ``data`` against ``schemas/predict.schema.json`` and build the config."""
+        from sceneforge.config import build_config
+
+        return build_config(cls, data, schema="predict", what=what)
+

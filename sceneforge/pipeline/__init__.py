@@ -1,0 +1,163 @@
+"""``sceneforge render``: houses in, a sharded zarr store out, on one machine or a Dask cluster.
+
+A run goes through four steps, each resumable:
+
+1. **Plan houses** (parallel, one task per house): load the house and choose its cameras
+   (sampled with a seed derived from ``config.seed`` and the house id, or read from a PBRS
+   camera file). A house that cannot be loaded or given a camera is recorded as failed.
+2. **Assign views** (main process): views are numbered house by house in the order
+   :func:`~sceneforge.houses.discover` lists the houses, cameras in order within a house.
+   The per-view arrays are created with that many views.
+3. **Render shards** (parallel, one task per shard): a task computes the views of one shard
+   (ground truth and RGB) and writes that shard of every per-view array, so no two tasks
+   ever write the same file. Its ground-truth meshes go to a staged part; a marker listing
+   the SHA-256 of every file it wrote is written last, atomically.
+4. **Finalize** (main process, single writer): the mesh parts are concatenated in view
+   order into the ragged mesh arrays, provenance and the failure log are written to the
+   group attributes with ``complete: true``, and the staging folder is removed.
+
+Work in progress lives in ``OUT.zarr/_staging/``. A killed run (SIGKILL, power loss)
+restarted with the same command skips every house record and shard whose marker is intact
+and whose files still hash as recorded, redoes the rest, and ends with the same bytes as an
+uninterrupted run: nothing written depends on timing, worker count or scheduler.
+
+Execution: in-process (``workers=1``), a pool of spawned processes (``workers=N``) or a Dask
+distributed cluster (``scheduler="tcp://host:8786"``, or ``"local"`` for a LocalCluster).
+Each worker process keeps one renderer and the last house it loaded.
+
+One module per step: :mod:`.plan` (steps 1 and 2), :mod:`.shards` (3), :mod:`.finalize` (4);
+:mod:`.staging` keeps the work in progress and decides what resumes, :mod:`.executors` runs
+the tasks, :mod:`.worker` is what a worker process keeps between them. The store itself is
+written through :class:`~sceneforge.store.StoreWriter`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable, Protocol
+
+from ..store import StoreWriter
+from .executors import executor
+from .finalize import finalize_store
+from .plan import Plan, ViewPlan, plan_house, plan_houses
+from .shards import ShardTask, render_shard
+from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, write_error
+
+if TYPE_CHECKING:
+    from ..config import DatasetConfig
+    from ..houses import HouseSource
+
+__all__ = ["Plan", "Progress", "RenderSummary", "STAGING", "ShardTask", "ViewPlan", "executor", "plan_house",
+           "render_dataset", "render_shard"]
+
+
+class Progress(Protocol):
+    """Receives progress: ``start`` once per step, then ``advance`` as work completes."""
+
+    def start(self, step: str, total: int, unit: str, done: int = 0) -> None: ...
+
+    def advance(self, n: int) -> None: ...
+
+
+@dataclass
+class RenderSummary:
+    """What a run did.
+
+    failures : the store's failure log (``house``, ``stage``, ``reason``, ``view``)
+    timings  : worker seconds spent this run per stage (``load``, ``ground_truth``,
+               ``render``, ``write``), summed over views
+    """
+
+    path: str
+    views: int
+    houses: int
+    failed_houses: tuple[str, ...]
+    failures: list[dict]
+    shards: int
+    shards_run: int
+    seconds: float
+    timings: dict[str, float] = field(default_factory=dict)
+    already_complete: bool = False
+
+
+def render_dataset(
+    houses: str,
+    out: str,
+    config: "DatasetConfig",
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    overwrite: bool = False,
+    storage_options: dict | None = None,
+    progress: Progress | None = None,
+) -> RenderSummary:
+    """Render every house under ``houses`` into the store at ``out`` (resuming it if a run with
+    the same config and houses was interrupted there).
+
+    houses : anything :func:`~sceneforge.houses.discover` takes (a folder, ``bundled:toy``, ...)
+    out    : local path or fsspec URL of the store
+    Raises :class:`SceneforgeError` for an unusable destination or a failed write; houses that
+    fail are recorded in the store's failure log and the summary.
+    """
+    from ..houses import discover
+
+    t_start = time.perf_counter()
+    sources = discover(houses, config.houses.format)
+    writer = StoreWriter(out, storage_options)
+    try:
+        state = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite)
+    except OSError as e:
+        raise write_error(writer, e) from None
+    if state == "complete":
+        writer.rm(STAGING)
+        writer.remove_partials()
+        attrs = writer.attrs()
+        return _summary(writer, attrs["houses"], attrs["failures"], attrs["views"], config, 0, t_start, {},
+                        already_complete=True)
+
+    try:
+        with executor(workers, scheduler) as run:
+            plan = Plan.from_records(plan_houses(writer, sources, config, run, progress))
+            if writer.get_json(CREATED_KEY) != {"views": len(plan.views)}:
+                writer.create(config, str(houses), len(plan.views))
+                writer.put_json(CREATED_KEY, {"views": len(plan.views)})
+            markers, shards_run, timings = _render_shards(writer, plan, sources, config, run, progress)
+        provenance, failures = finalize_store(writer, plan, config, str(houses), markers)
+    except OSError as e:
+        raise write_error(writer, e) from None
+    return _summary(writer, provenance, failures, len(plan.views), config, shards_run, t_start, timings)
+
+
+def _render_shards(writer: StoreWriter, plan: Plan, sources: list["HouseSource"], config: "DatasetConfig",
+                   run: Callable, progress: Progress | None) -> tuple[list[dict], int, dict[str, float]]:
+    """Step 3 for every shard whose staged marker is not intact. Returns every shard's
+    marker in shard order, how many shards were rendered and their worker seconds per stage."""
+    shards = plan.shards(config.store.views_per_shard)
+    markers = {s: writer.get_json(marker_key(s)) for s in range(len(shards))}
+    todo = [s for s, m in markers.items() if not intact(writer, m, shards[s])]
+    if progress:
+        progress.start("rendering views", len(plan.views), "views",
+                       done=sum(b - a for s, (a, b) in enumerate(shards) if s not in todo))
+    tasks = [ShardTask(writer.zarr_url, writer.storage_options, s, plan.views[a:b],
+                       {v.house: sources[v.house] for v in plan.views[a:b]}, config)
+             for s, (a, b) in enumerate(shards) if s in todo]
+    timings = Counter()
+    for marker in run(render_shard, tasks):
+        timings.update(marker.pop("timings"))
+        markers[marker["shard"]] = marker
+        if progress:
+            progress.advance(marker["views"][1] - marker["views"][0])
+    return [markers[s] for s in range(len(shards))], len(tasks), dict(timings)
+
+
+def _summary(writer, houses, failures, n_views, config, shards_run, t_start, timings, already_complete=False):
+    failed = tuple(dict.fromkeys(f["house"] for f in failures))
+    return RenderSummary(
+        path=writer.url, views=n_views, houses=sum(h["status"] == "ok" for h in houses),
+        failed_houses=failed, failures=failures, shards=math.ceil(n_views / config.store.views_per_shard),
+        shards_run=shards_run, seconds=time.perf_counter() - t_start, timings=timings,
+        already_complete=already_complete,
+    )

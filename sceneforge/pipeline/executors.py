@@ -1,0 +1,120 @@
+"""Where a run's tasks execute: in this process, a pool of spawned local processes, or a
+Dask distributed cluster, all behind one ``map(fn, items)`` that yields results as tasks
+complete."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from typing import Callable, Iterable, Iterator
+
+from ..errors import MissingDependencyError, SceneforgeError
+from .worker import WORKER
+
+#: environment of local worker processes: BLAS thread pools fight Open3D's for the cores
+#: when each worker has its own
+_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1"}
+
+
+def _worker_env(workers: int) -> dict[str, str]:
+    """Environment of ``workers`` local worker processes: single-threaded BLAS, and the
+    cores shared out among the workers' ray tracers (Open3D would otherwise give each
+    worker a thread per core: on 2 cores, 2 workers ran no faster than 1)."""
+    from ..raytrace import THREADS_ENV
+
+    return {**_WORKER_ENV, THREADS_ENV: str(max(1, (os.cpu_count() or 1) // workers))}
+
+
+@contextlib.contextmanager
+def _environ(variables: dict[str, str]) -> Iterator[None]:
+    """Set the unset ``variables`` while the block runs (worker processes started in it
+    inherit them), then restore the environment."""
+    added = [k for k in variables if k not in os.environ]
+    os.environ.update({k: variables[k] for k in added})
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+@contextlib.contextmanager
+def executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Callable[[Callable, Iterable], Iterator]]:
+    """A ``map(fn, items)`` that yields results as tasks complete.
+
+    workers   : processes (or Dask workers for ``scheduler="local"``); 1 runs in this process
+    scheduler : None for local processes, ``"local"`` for a Dask LocalCluster, or the
+                address of a Dask scheduler (``tcp://host:8786``)
+
+    Local processes are started with ``spawn`` (forking a process that holds an OpenGL or
+    Open3D context is unsafe) and live as long as the block, so each keeps its renderer and
+    last house across tasks.
+    """
+    if workers < 1:
+        raise SceneforgeError(f"workers must be at least 1, got {workers}")
+    if scheduler is not None:
+        with _dask(workers, scheduler) as run:
+            yield run
+    elif workers == 1:
+        try:
+            yield lambda fn, items: map(fn, items)
+        finally:
+            WORKER.close()
+    else:
+        with _process_pool(workers) as run:
+            yield run
+
+
+@contextlib.contextmanager
+def _process_pool(workers: int):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    def run(fn, items):
+        futures = [pool.submit(fn, item) for item in items]
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        except BrokenProcessPool:
+            raise SceneforgeError("a worker process died (out of memory or a crash in a native library); "
+                                  "run the same command again to resume") from None
+        finally:
+            for future in futures:
+                future.cancel()
+
+    with _environ(_worker_env(workers)), ProcessPoolExecutor(workers, multiprocessing.get_context("spawn")) as pool:
+        yield run
+
+
+@contextlib.contextmanager
+def _dask(workers: int, scheduler: str):
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as e:
+        raise MissingDependencyError("dask[distributed]", "--scheduler", "pip install sceneforge[store]") from e
+    cluster = None
+    if scheduler == "local":
+        # its nannies start workers with single-threaded BLAS (Dask's pre-spawn environment);
+        # the workers inherit the tracers' share of the cores
+        with _environ(_worker_env(workers)):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    try:
+        client = Client(cluster if cluster is not None else scheduler, timeout="30s")
+    except (OSError, TimeoutError) as e:
+        raise SceneforgeError(f"cannot reach the Dask scheduler {scheduler}: {e}") from None
+
+    def run(fn, items):
+        futures = client.map(fn, list(items), pure=False)
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        finally:
+            client.cancel(futures)
+
+    try:
+        yield run
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,144 @@
+"""Steps 1 and 2 of a run: plan each house (load it, choose its cameras), then number the
+views house by house."""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from ..errors import SceneforgeError
+from .staging import house_key
+from .worker import WORKER
+
+if TYPE_CHECKING:
+    from ..config import DatasetConfig
+    from ..houses import HouseSource
+    from ..store import StoreWriter
+    from . import Progress
+
+
+# ------------------------------------------------------------------------ 1. plan houses
+
+
+def _house_rng(seed: int, house_id: str) -> np.random.Generator:
+    """The camera sampler's generator for a house: depends on the seed and the house id
+    only, so a house gets the same cameras whatever other houses are in the run."""
+    return np.random.default_rng([seed, zlib.crc32(house_id.encode())])
+
+
+def _file_cameras(source: "HouseSource", config: "DatasetConfig"):
+    """Cameras of ``<cameras>/<house id>/room_camera.txt`` and their 0-based line numbers."""
+    from pathlib import Path
+
+    from ..cameras import read_pbrs_cameras
+
+    path = Path(config.cameras) / source.id / "room_camera.txt"
+    if not path.is_file():
+        raise SceneforgeError(f"no camera file {path}")
+    cameras = read_pbrs_cameras(path, config.width, config.height)
+    lines = [i for i, line in enumerate(path.read_text().splitlines()) if line.split("#", 1)[0].strip()]
+    return cameras, lines, {"source": "file", "file": str(path), "requested": len(cameras),
+                            "accepted": len(cameras)}
+
+
+def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
+    """Load one house and choose its cameras (step 1).
+
+    Returns a JSON-ready record: ``id``, ``format``, ``path``, counts, loader warnings,
+    ``cameras`` (how they were chosen), ``camera_id``, ``K`` and ``cam_to_world`` per
+    camera; or ``failure`` (``stage``, ``reason``) when the house cannot be used.
+    """
+    from ..cameras import sample_cameras
+
+    record = {"id": source.id, "format": source.format, "path": str(source.path)}
+    stage = "load"
+    try:
+        house = WORKER.load(source, config)
+        record.update(instances=len(house.instances), triangles=house.triangle_count, rooms=len(house.rooms),
+                      warnings=list(house.warnings))
+        stage = "cameras"
+        if config.cameras is not None:
+            cameras, ids, info = _file_cameras(source, config)
+        else:
+            cameras, report = sample_cameras(house, config.views_per_house, _house_rng(config.seed, source.id),
+                                             config.sampler, WORKER.tracer_of(house))
+            ids = list(range(len(cameras)))
+            info = {"source": "sampled", "requested": report.requested, "accepted": report.accepted,
+                    "candidates": report.candidates, "rejected": dict(report.rejected)}
+        record["cameras"] = info
+        if not cameras:
+            raise SceneforgeError(f"no valid camera ({_no_camera_reason(info)})")
+    except Exception as e:  # a broken house must not stop the others; bugs are logged too
+        reason = str(e) if isinstance(e, SceneforgeError) else f"{type(e).__name__}: {e}"
+        return {**record, "failure": {"stage": stage, "reason": reason}}
+    record.update(camera_id=ids, K=[c.K.tolist() for c in cameras],
+                  cam_to_world=[c.cam_to_world.tolist() for c in cameras])
+    return record
+
+
+def _no_camera_reason(info: dict) -> str:
+    if info["source"] == "file":
+        return f"{info['file']} lists none"
+    rejected = ", ".join(f"{k} {v}" for k, v in info["rejected"].items() if v)
+    return f"all {info['candidates']} candidates rejected: {rejected}"
+
+
+def plan_houses(writer: "StoreWriter", sources: list["HouseSource"], config: "DatasetConfig", run: Callable,
+                progress: "Progress | None") -> list[dict]:
+    """Step 1 for every house, in parallel through ``run``; a house whose record is staged
+    already (an interrupted run) is not planned again. Returns the records in ``sources`` order."""
+    records = {i: writer.get_json(house_key(i)) for i in range(len(sources))}
+    todo = [i for i, r in records.items() if r is None]
+    if progress:
+        progress.start("planning houses", len(sources), "houses", done=len(sources) - len(todo))
+    for i, record in run(_plan_indexed, [(i, sources[i], config) for i in todo]):
+        writer.put_json(house_key(i), record)
+        records[i] = record
+        if progress:
+            progress.advance(1)
+    return [records[i] for i in range(len(sources))]
+
+
+def _plan_indexed(args) -> tuple[int, dict]:
+    i, source, config = args
+    return i, plan_house(source, config)
+
+
+# ----------------------------------------------------------------------- 2. assign views
+
+
+@dataclass(frozen=True)
+class ViewPlan:
+    """One view to compute: its index, house and camera."""
+
+    index: int
+    house: int
+    camera_id: int
+    K: np.ndarray
+    cam_to_world: np.ndarray
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Every view of a run in order, and the houses they come from (records of step 1)."""
+
+    houses: tuple[dict, ...]
+    views: tuple[ViewPlan, ...]
+
+    @classmethod
+    def from_records(cls, records: list[dict]) -> "Plan":
+        views, houses = [], []
+        for h, rec in enumerate(records):
+            start = len(views)
+            if "failure" not in rec:
+                for cid, K, pose in zip(rec["camera_id"], rec["K"], rec["cam_to_world"]):
+                    views.append(ViewPlan(len(views), h, cid, np.array(K), np.array(pose)))
+            houses.append({**rec, "views": [start, len(views)]})
+        return cls(tuple(houses), tuple(views))
+
+    def shards(self, per_shard: int) -> list[tuple[int, int]]:
+        n = len(self.views)
+        return [(s, min(s + per_shard, n)) for s in range(0, n, per_shard)]
