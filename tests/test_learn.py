@@ -1,5 +1,6 @@
 """Models and training: losses with analytic values, networks' shapes, the dataset over a tiny
-store, a 2-step CPU smoke test of every stage, resume, overfitting, predictions and the CLI."""
+store, the stage registry, the trainer's pieces, a 2-step CPU smoke test of every stage,
+resume, overfitting, predictions and the CLI."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ pytest.importorskip("zarr", reason="the store extra (zarr) is not installed")
 
 from sceneforge.conventions import NYU40_IDS  # noqa: E402
 from sceneforge.errors import SceneforgeError  # noqa: E402
+from sceneforge.learn.config import FROZEN  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
     CLASS_TO_NYU40,
@@ -37,7 +39,9 @@ from sceneforge.learn.networks import (  # noqa: E402
     masked_layers,
 )
 from sceneforge.learn.predict import predict, proposed_overhead_cameras  # noqa: E402
-from sceneforge.learn.train import TrainConfig, load_run, read_config, read_metrics, train  # noqa: E402
+from sceneforge.learn.stages import REGISTRY, get_stage  # noqa: E402
+from sceneforge.learn.train import STAGES, TrainConfig, load_run, read_config, read_metrics, train  # noqa: E402
+from sceneforge.learn.trainer import Checkpoint, EpochLoop, MetricsLog, Position, Trainer  # noqa: E402
 
 TINY = 0.125  # network width multiplier of every test
 
@@ -206,6 +210,96 @@ def test_dataset_reads_lazily_and_works_with_workers(store):
 
 
 # -------------------------------------------------------------------------- training
+
+
+def test_the_registry_holds_every_stage_in_training_order():
+    from sceneforge.learn.dataset import SAMPLE_FIELDS
+
+    assert tuple(REGISTRY) == STAGES
+    for position, (name, stage) in enumerate(REGISTRY.items()):
+        assert stage.name == name and get_stage(name) is stage
+        assert set(stage.fields) <= set(SAMPLE_FIELDS)
+        assert set(stage.frozen) <= set(STAGES[:position])  # a stage freezes runs trained before it
+    assert {n: s.frozen for n, s in REGISTRY.items()} == {"depth": (), "seg": (), "overhead": ("depth", "seg"),
+                                                         "camera": ("depth",)}
+    assert {n: s.frozen for n, s in REGISTRY.items() if s.frozen} == FROZEN  # what the torch-free CLI reads
+    assert {n: s.predicts for n, s in REGISTRY.items()} == {"depth": ("depth",), "seg": ("seg",),
+                                                           "overhead": ("depth", "seg", "overhead"),
+                                                           "camera": ("camera",)}
+    assert [n for n, s in REGISTRY.items() if s.uses_eft] == ["overhead"]
+    assert [(n, s.predicts_with) for n, s in REGISTRY.items() if s.predicts_with] == [("camera", "overhead")]
+    assert REGISTRY["overhead"].loss_parts == ("height_l1", "seg_ce")
+    with pytest.raises(SceneforgeError, match="unknown training stage 'voxels'.*depth, seg, overhead, camera"):
+        get_stage("voxels")
+
+
+class _Views(torch.utils.data.Dataset):
+    """n random 16×16 views with depth targets: what the depth stage reads, without a store."""
+
+    def __init__(self, n: int):
+        g = torch.Generator().manual_seed(n)
+        self.rgb, self.depth = torch.randn(n, 3, 16, 16, generator=g), torch.rand(n, 5, 16, 16, generator=g) + 1
+
+    def __len__(self):
+        return len(self.rgb)
+
+    def __getitem__(self, i):
+        return {"index": i, "rgb": self.rgb[i], "depth": self.depth[i]}
+
+
+def _depth_trainer(**kw) -> Trainer:
+    config = TrainConfig(stage="depth", stores=("unread",), **{"batch_size": 2, "width": TINY, **kw})
+    return Trainer(config, {}, None, torch.device("cpu"))
+
+
+def test_checkpoint_restores_the_trainer_and_survives_a_failed_save(tmp_path, monkeypatch):
+    trainer = _depth_trainer()
+    trainer.step(next(iter(torch.utils.data.DataLoader(_Views(2), batch_size=2))), 0)
+    checkpoint = Checkpoint(tmp_path / "checkpoint.pt")
+    checkpoint.save(trainer, Position(1, 0, 1))
+    assert [p.name for p in tmp_path.iterdir()] == ["checkpoint.pt"]
+
+    def broken_save(state, path):
+        path.write_bytes(b"half a checkpoint")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        checkpoint.save(trainer, Position(2, 0, 2))
+    monkeypatch.undo()
+    fresh = _depth_trainer(seed=1)
+    assert checkpoint.restore(fresh) == Position(1, 0, 1)  # the whole previous checkpoint
+    for (name, a), b in zip(trainer.nets["depth"].state_dict().items(), fresh.nets["depth"].state_dict().values()):
+        assert torch.equal(a, b), name
+    assert fresh.optimizer.state_dict()["state"].keys() == trainer.optimizer.state_dict()["state"].keys()
+
+
+def test_a_diverged_loss_is_an_expected_error():
+    batch = next(iter(torch.utils.data.DataLoader(_Views(2), batch_size=2)))
+    batch["rgb"][0, 0, 0, 0] = torch.nan
+    with pytest.raises(SceneforgeError, match="step 7: the loss is nan"):
+        _depth_trainer().step(batch, 7)
+
+
+def test_the_epoch_loop_logs_validates_and_checkpoints_on_schedule(tmp_path):
+    # 8 views in batches of 3: 3 steps an epoch, the last one of 2 views
+    trainer = _depth_trainer(batch_size=3, epochs=2, log_every=2, checkpoint_every=100)
+    log = MetricsLog(tmp_path, (), None, tensorboard=False)
+    checkpoint = Checkpoint(tmp_path / "checkpoint.pt")
+    loop = EpochLoop(trainer, _Views(8), _Views(3), 6, log, checkpoint)
+    end = loop.run(Position())
+    assert end == Position(6, 2, 0) and checkpoint.load()["step"] == 6
+    rows = read_metrics(tmp_path / "metrics.csv")
+    assert [(int(r["step"]), int(r["epoch"]), r["split"]) for r in rows] == [
+        (2, 0, "train"), (3, 0, "val"), (4, 1, "train"), (6, 1, "train"), (6, 1, "val")]
+    assert loop.train_loss == float(rows[3]["loss"]) and loop.val_loss == float(rows[4]["loss"])
+    assert all(net.training for net in trainer.nets.values())  # validation hands them back in training mode
+
+    stopped = EpochLoop(_depth_trainer(batch_size=3, epochs=2, log_every=2), _Views(8), _Views(3), 2, log,
+                        checkpoint)
+    assert stopped.run(Position()) == Position(2, 0, 2)  # mid-epoch: no validation, resumable position
+    assert checkpoint.load()["batch"] == 2 and math.isnan(stopped.val_loss)
+
 
 
 @pytest.mark.parametrize("stage", ["depth", "seg", "overhead", "camera"])

@@ -5,7 +5,9 @@
 - :mod:`.networks` — frontal depth and segmentation nets, overhead nets, camera proposal
 - :mod:`.eft`      — the Epipolar Feature Transformer (frontal features → overhead view)
 - :mod:`.losses`   — masked Huber (equation 1), cross-entropy, L1 on heights
-- :mod:`.train`    — one stage per run: checkpoints, resume, metrics, loss curve
+- :mod:`.stages`   — the training stages as objects: inputs, nets, frozen runs, loss, outputs
+- :mod:`.trainer`  — the loop and its pieces: optimiser steps, validation, checkpoint, metrics
+- :mod:`.train`    — one stage per run: the run folder, resume, loss curve
 - :mod:`.predict`  — a run's predictions written in the store layout
 
 The names below are imported on first use, so that ``sceneforge.learn.config`` loads

@@ -2,8 +2,9 @@
 
 Stages, in order: ``depth`` and ``seg`` (frontal nets, on RGB), then ``overhead`` (height
 and segmentation nets on the EFT of the *frozen* frontal nets' features) and ``camera``
-(the virtual camera proposal on the frozen depth net's features). Adam, lr 5e-4, batch
-24 *(paper)*.
+(the virtual camera proposal on the frozen depth net's features); each is an object of
+:mod:`.stages`. Adam, lr 5e-4, batch 24 *(paper)*. The loop and its pieces (checkpoint,
+metrics, validation) are in :mod:`.trainer`.
 
 A run lives in one folder::
 
@@ -21,44 +22,31 @@ checkpoint with the same data order (a seeded permutation per epoch).
 
 from __future__ import annotations
 
-import csv
 import importlib.util
 import json
 import math
-import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Protocol
 
 import torch
-from torch import Tensor, nn
+from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
-from .config import FROZEN, STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
-from .dataset import SEG_CLASSES, SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
-from .eft import EpipolarFeatureTransformer, EpipolarGeometry, epipolar_geometry
-from .losses import camera_loss, depth_loss, height_loss, segmentation_loss
-from .networks import (
-    DEPTH_NET,
-    OVERHEAD_NET,
-    SEG_NET,
-    CameraNetConfig,
-    CameraProposalNet,
-    FrontalDepthNet,
-    FrontalSegNet,
-    OverheadNet,
-    masked_layers,
+from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
+from .dataset import SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
+from .eft import EpipolarFeatureTransformer
+from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
+from .trainer import (
+    CHECKPOINT,
+    Checkpoint,
+    EpochLoop,
+    MetricsLog,
+    Position,
+    Trainer,
+    TrainProgress,
+    read_metrics,
 )
-
-#: the parts of each stage's loss logged beside it
-LOSS_PARTS = {"depth": (), "seg": (), "overhead": ("height_l1", "seg_ce"), "camera": ()}
-#: sample fields each stage reads (see :data:`sceneforge.learn.dataset.SAMPLE_FIELDS`)
-FIELDS = {"depth": ("rgb", "depth"), "seg": ("rgb", "seg"),
-          "overhead": ("rgb", "depth", "camera", "overhead_height", "overhead_seg"),
-          "camera": ("rgb", "camera")}
-CHECKPOINT = "checkpoint.pt"
-
 
 # ------------------------------------------------------------------------- networks
 
@@ -68,21 +56,7 @@ def build_nets(config: TrainConfig, frontal: dict[str, nn.Module] | None = None)
 
     frontal : the frozen nets of :func:`frontal_nets` (overhead and camera stages)
     """
-    def widths(paper):
-        return replace(paper.scaled(config.width), bn_momentum=config.bn_momentum)
-
-    if config.stage == "depth":
-        return {"depth": FrontalDepthNet(widths(DEPTH_NET))}
-    if config.stage == "seg":
-        return {"seg": FrontalSegNet(widths(SEG_NET))}
-    if config.stage == "overhead":
-        cin = EpipolarFeatureTransformer.out_channels(frontal["depth"].feature_channels,
-                                                      frontal["seg"].feature_channels)
-        return {"height": OverheadNet(cin, 1, widths(OVERHEAD_NET)),
-                "overhead_seg": OverheadNet(cin, SEG_CLASSES, widths(OVERHEAD_NET))}
-    depth = frontal["depth"]
-    return {"camera": CameraProposalNet(depth.feature_channels, depth.config.channels[-1],
-                                        widths(CameraNetConfig()))}
+    return get_stage(config.stage).build(config, frontal or {})
 
 
 def load_run(run: str | Path, device: torch.device | str = "cpu") -> tuple[TrainConfig, dict[str, nn.Module]]:
@@ -93,14 +67,14 @@ def load_run(run: str | Path, device: torch.device | str = "cpu") -> tuple[Train
     """
     run = Path(run)
     config = read_config(run)
-    path = run / CHECKPOINT
-    if not path.exists():
+    checkpoint = Checkpoint(run / CHECKPOINT)
+    if not checkpoint.exists():
         raise SceneforgeError(f"{run}: no {CHECKPOINT} (the run has not saved a step yet)")
-    state = torch.load(path, map_location=device, weights_only=True)
-    frontal = frontal_nets(config, device) if config.stage in ("overhead", "camera") else {}
+    models = checkpoint.load(device)["models"]
+    frontal = frontal_nets(config, device)
     nets = build_nets(config, frontal)
     for name, net in nets.items():
-        net.load_state_dict(state["models"][name])
+        net.load_state_dict(models[name])
         net.to(device).eval()
     return config, {**frontal, **nets}
 
@@ -116,10 +90,10 @@ def read_config(run: str | Path) -> TrainConfig:
 
 
 def frontal_nets(config: TrainConfig, device: torch.device | str = "cpu") -> dict[str, nn.Module]:
-    """The frozen frontal nets an overhead (depth + seg) or camera (depth) stage reads."""
-    needed = FROZEN[config.stage]
+    """The frozen nets of the runs ``config.stage`` reads (:attr:`Stage.frozen`: overhead
+    depth + seg, camera depth; none for the frontal stages)."""
     nets = {}
-    for stage in needed:
+    for stage in get_stage(config.stage).frozen:
         run = getattr(config, f"{stage}_run")
         if run is None:
             raise SceneforgeError(f"the {config.stage} stage needs a trained {stage} run (--{stage}-run)")
@@ -130,55 +104,7 @@ def frontal_nets(config: TrainConfig, device: torch.device | str = "cpu") -> dic
     return nets
 
 
-def geometry(batch: dict[str, Tensor], frontal_hw: tuple[int, int], resolution: int) -> EpipolarGeometry:
-    """The EFT geometry of a batch with the ``camera`` fields (K at the images' resolution)."""
-    return epipolar_geometry(batch["K"], batch["cam_to_world"], batch["overhead_cam_to_world"],
-                             batch["overhead_extent"], batch["overhead_params"][:, 2], frontal_hw, resolution)
-
-
-@torch.no_grad()
-def overhead_input(frontal: dict[str, nn.Module], eft: EpipolarFeatureTransformer, batch: dict[str, Tensor],
-                   true_layers: bool = False) -> tuple[Tensor, Tensor, Tensor]:
-    """Run the frozen frontal nets and the EFT on a batch.
-
-    Returns the overhead nets' input (B, 232, R, R), the frontal layers the EFT used
-    (B, 5, H, W; NaN where empty) and the segmentation logits (B, 80, H, W).
-    """
-    rgb = batch["rgb"]
-    depth, seg = frontal["depth"](rgb), frontal["seg"](rgb)
-    layers = batch["depth"] if true_layers else masked_layers(depth.prediction, seg.prediction)
-    geom = geometry(batch, tuple(rgb.shape[-2:]), eft.resolution)
-    return eft(rgb, depth.features, seg.features, layers[:, :4], geom), layers, seg.prediction
-
-
-def stage_loss(config: TrainConfig, nets: dict[str, nn.Module], frontal: dict[str, nn.Module],
-               eft: EpipolarFeatureTransformer | None, batch: dict[str, Tensor]
-               ) -> tuple[Tensor, dict[str, float]]:
-    """The stage's loss on a batch and its logged parts (:data:`LOSS_PARTS`)."""
-    if config.stage == "depth":
-        return depth_loss(nets["depth"](batch["rgb"]).prediction, batch["depth"], config.loss), {}
-    if config.stage == "seg":
-        return segmentation_loss(nets["seg"](batch["rgb"]).prediction, batch["seg"]), {}
-    if config.stage == "overhead":
-        x, _, _ = overhead_input(frontal, eft, batch, config.eft_layers == "truth")
-        h = height_loss(nets["height"](x), batch["overhead_height"])
-        s = segmentation_loss(nets["overhead_seg"](x), batch["overhead_seg"])
-        return h + config.loss.overhead_seg_weight * s, {"height_l1": h.item(), "seg_ce": s.item()}
-    with torch.no_grad():
-        out = frontal["depth"](batch["rgb"])
-    pred = nets["camera"](out.features, out.encoding)
-    return camera_loss(pred, batch["overhead_params"][:, [0, 1, 4]].to(pred.dtype)), {}
-
-
 # --------------------------------------------------------------------------- running
-
-
-class TrainProgress(Protocol):
-    """Receives a run's progress: ``start`` once, then ``step`` after every optimiser step."""
-
-    def start(self, total: int, done: int) -> None: ...
-
-    def step(self, step: int, loss: float) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -202,68 +128,6 @@ def resolve_device(device: str) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise SceneforgeError(f"device {device!r} asked for, but torch sees no CUDA GPU")
     return dev
-
-
-class EpochSampler(torch.utils.data.Sampler):
-    """Indices of one epoch: a permutation seeded by (seed, epoch), from batch ``start`` on."""
-
-    def __init__(self, n: int, seed: int, epoch: int, start: int, batch_size: int):
-        self.order = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))
-        self.order = self.order[start * batch_size:]
-
-    def __iter__(self):
-        return iter(self.order.tolist())
-
-    def __len__(self) -> int:
-        return len(self.order)
-
-
-def _loader(dataset, batch_size: int, sampler, workers: int, device: torch.device):
-    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
-                                       pin_memory=device.type == "cuda", persistent_workers=False)
-
-
-def _to(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-
-
-class MetricsLog:
-    """``metrics.csv`` (and TensorBoard scalars when it is installed)."""
-
-    def __init__(self, run: Path, parts: tuple[str, ...], resume_step: int | None, tensorboard: bool):
-        self.path = run / "metrics.csv"
-        self.columns = ["step", "epoch", "split", "loss", *parts, "lr", "images_per_s", "seconds"]
-        rows = []
-        if resume_step is not None and self.path.exists():
-            # rows logged after the checkpoint are redone by the resumed run
-            rows = [r for r in read_metrics(self.path) if int(r["step"]) <= resume_step]
-        with self.path.open("w", newline="") as f:
-            writer = csv.DictWriter(f, self.columns)
-            writer.writeheader()
-            writer.writerows(rows)
-        self.tb = None
-        if tensorboard and importlib.util.find_spec("tensorboard") is not None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self.tb = SummaryWriter(str(run / "tensorboard"))
-
-    def write(self, row: dict) -> None:
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, self.columns).writerow(row)
-        if self.tb is not None:
-            for key in self.columns[3:]:
-                if row.get(key) not in (None, ""):
-                    self.tb.add_scalar(f"{row['split']}/{key}", float(row[key]), int(row["step"]))
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
-
-
-def read_metrics(path: str | Path) -> list[dict]:
-    """The rows of a run's ``metrics.csv`` as dicts of strings."""
-    with Path(path).open(newline="") as f:
-        return list(csv.DictReader(f))
 
 
 def plot_loss_curve(run: str | Path) -> Path:
@@ -290,10 +154,10 @@ def plot_loss_curve(run: str | Path) -> Path:
     return out
 
 
-def _save(path: Path, state: dict) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+def _absolute_runs(config: TrainConfig) -> TrainConfig:
+    """The frozen runs as absolute paths: found again from any working directory."""
+    return replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
+                   seg_run=config.seg_run and str(Path(config.seg_run).resolve()))
 
 
 def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
@@ -328,20 +192,24 @@ def _split(config: TrainConfig) -> tuple[ViewIndex, dict[str, ViewIndex], dict]:
     return index, subsets, record
 
 
-def _evaluate(config, nets, frontal, eft, dataset, device, workers) -> float:
-    """Mean loss over a dataset, nets in eval mode."""
-    for net in nets.values():
-        net.eval()
-    total, n = 0.0, 0
-    with torch.no_grad():
-        for batch in _loader(dataset, config.batch_size, None, workers, device):
-            batch = _to(batch, device)
-            loss, _ = stage_loss(config, nets, frontal, eft, batch)
-            total += loss.item() * len(batch["index"])
-            n += len(batch["index"])
-    for net in nets.values():
-        net.train()
-    return total / max(n, 1)
+def _write_run_files(run: Path, config: TrainConfig, split_record: dict) -> None:
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "split.json").write_text(json.dumps(split_record, indent=2) + "\n")
+    (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+
+
+def _datasets(stage: Stage, config: TrainConfig, subsets: dict[str, ViewIndex]
+              ) -> tuple[StoreDataset, StoreDataset | None]:
+    """The training views and the validation views (None when there are none) as samples."""
+    train_set = StoreDataset(subsets["train"], stage.fields, config.floor_as_zero)
+    val_set = StoreDataset(subsets["val"], stage.fields, config.floor_as_zero) if len(subsets["val"]) else None
+    return train_set, val_set
+
+
+def _total_steps(config: TrainConfig, views: int) -> int:
+    """The steps of the run: ``epochs`` over ``views`` training views, capped by ``max_steps``."""
+    steps = config.epochs * math.ceil(views / config.batch_size)
+    return steps if config.max_steps is None else min(config.max_steps, steps)
 
 
 def train(
@@ -366,91 +234,26 @@ def train(
         raise MissingDependencyError("matplotlib", "the loss curve of a training run",
                                      "pip install sceneforge[learn]")
     run = Path(run)
-    # frozen runs are found again from any working directory
-    config = replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
-                     seg_run=config.seg_run and str(Path(config.seg_run).resolve()))
-    config = _prepare_run(config, run, resume)
+    config = _prepare_run(_absolute_runs(config), run, resume)
     dev = resolve_device(device)
-    frontal = frontal_nets(config, dev) if config.stage in ("overhead", "camera") else {}
+    frontal = frontal_nets(config, dev)
     index, subsets, split_record = _split(config)
-    run.mkdir(parents=True, exist_ok=True)
-    (run / "split.json").write_text(json.dumps(split_record, indent=2) + "\n")
-    (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n")
+    _write_run_files(run, config, split_record)
 
-    torch.manual_seed(config.seed)
-    nets = build_nets(config, frontal)
-    for net in nets.values():
-        net.to(dev).train()
+    stage = get_stage(config.stage)
     # the overhead nets are supervised at the stores' overhead resolution
-    eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"]) if config.stage == "overhead" else None
-    params = [p for net in nets.values() for p in net.parameters()]
-    optimizer = torch.optim.Adam(params, lr=config.lr)
-
-    step = epoch = start_batch = 0
-    if resume:
-        state = torch.load(run / CHECKPOINT, map_location=dev, weights_only=True)
-        for name, net in nets.items():
-            net.load_state_dict(state["models"][name])
-        optimizer.load_state_dict(state["optimizer"])
-        step, epoch, start_batch = state["step"], state["epoch"], state["batch"]
-
-    fields = FIELDS[config.stage]
-    train_set = StoreDataset(subsets["train"], fields, config.floor_as_zero)
-    val_set = StoreDataset(subsets["val"], fields, config.floor_as_zero) if len(subsets["val"]) else None
-    per_epoch = math.ceil(len(train_set) / config.batch_size)
-    total = config.epochs * per_epoch if config.max_steps is None else min(config.max_steps,
-                                                                           config.epochs * per_epoch)
-    log = MetricsLog(run, LOSS_PARTS[config.stage], step if resume else None, tensorboard)
+    eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"]) if stage.uses_eft else None
+    trainer = Trainer(config, frontal, eft, dev)
+    checkpoint = Checkpoint(run / CHECKPOINT)
+    start = checkpoint.restore(trainer) if resume else Position()
+    train_set, val_set = _datasets(stage, config, subsets)
+    total = _total_steps(config, len(train_set))
+    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard)
     if progress:
-        progress.start(total, step)
-
-    def checkpoint(epoch_: int, batch_: int) -> None:
-        _save(run / CHECKPOINT, {"models": {k: v.state_dict() for k, v in nets.items()},
-                                 "optimizer": optimizer.state_dict(), "step": step, "epoch": epoch_,
-                                 "batch": batch_, "config": config.to_dict()})
-
-    t_run = time.perf_counter()
-    t_log, images, sums, count = time.perf_counter(), 0, {}, 0
-    last_train = last_val = float("nan")
-    rate = 0.0
-    while step < total and epoch < config.epochs:
-        sampler = EpochSampler(len(train_set), config.seed, epoch, start_batch, config.batch_size)
-        batch_no = start_batch
-        for batch in _loader(train_set, config.batch_size, sampler, workers, dev):
-            batch = _to(batch, dev)
-            loss, parts = stage_loss(config, nets, frontal, eft, batch)
-            if not torch.isfinite(loss):
-                raise SceneforgeError(f"step {step}: the loss is {loss.item()} (diverged); lower --lr")
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            step, batch_no = step + 1, batch_no + 1
-            images += len(batch["index"])
-            for key, value in {"loss": loss.item(), **parts}.items():
-                sums[key] = sums.get(key, 0.0) + value
-            count += 1
-            if progress:
-                progress.step(step, loss.item())
-            if step % config.log_every == 0 or step == total:
-                rate = images / max(time.perf_counter() - t_log, 1e-9)
-                last_train = sums["loss"] / count
-                log.write({"step": step, "epoch": epoch, "split": "train", "lr": config.lr,
-                           **{k: v / count for k, v in sums.items()}, "images_per_s": round(rate, 3),
-                           "seconds": round(time.perf_counter() - t_run, 3)})
-                t_log, images, sums, count = time.perf_counter(), 0, {}, 0
-            if step % config.checkpoint_every == 0:
-                checkpoint(epoch, batch_no)
-            if step >= total:
-                break
-        if batch_no >= per_epoch:
-            epoch, start_batch = epoch + 1, 0
-        else:
-            start_batch = batch_no
-        if val_set is not None and start_batch == 0:
-            last_val = _evaluate(config, nets, frontal, eft, val_set, dev, workers)
-            log.write({"step": step, "epoch": epoch - 1, "split": "val", "loss": last_val, "lr": config.lr,
-                       "seconds": round(time.perf_counter() - t_run, 3)})
-        checkpoint(epoch, start_batch)
+        progress.start(total, start.step)
+    loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress)
+    end = loop.run(start)
     log.close()
     plot_loss_curve(run)
-    return TrainResult(run, step, epoch, last_train, last_val, rate, time.perf_counter() - t_run)
+    return TrainResult(run, end.step, end.epoch, loop.train_loss, loop.val_loss, loop.images_per_s,
+                       time.perf_counter() - loop.started)
