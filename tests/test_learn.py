@@ -410,6 +410,10 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     assert p["overhead_extent"] == pytest.approx(p["overhead_params"][4] / math.sqrt(2))
     with pytest.raises(SceneforgeError, match="camera run"):
         predict(run, store, str(tmp_path / "x.zarr"), camera_run=frontal_runs["depth"], device="cpu")
+    with pytest.raises(SceneforgeError, match="is a camera run: give the overhead run it goes with as RUN"):
+        predict(camera, store, str(tmp_path / "x.zarr"), device="cpu")
+    with pytest.raises(SceneforgeError, match="needs an overhead run"):
+        predict(frontal_runs["depth"], store, str(tmp_path / "x.zarr"), camera_run=camera, device="cpu")
 
 
 def test_true_camera_parameters_place_the_true_overhead_camera(store):

@@ -37,6 +37,7 @@ from ..errors import SceneforgeError
 from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers
+from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
 
 if TYPE_CHECKING:
@@ -153,7 +154,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     valid = index.view
     source = open_store(store)
     eft = None
-    if config.stage == "overhead":
+    if get_stage(config.stage).uses_eft:
         eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
     dataset = StoreDataset(index, ("rgb", "camera"))
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
@@ -186,18 +187,20 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device) -> tuple:
     """The run's config and nets (with the camera run's, when given) and the stages predicted."""
     config, nets = load_run(run, dev)
-    if config.stage == "camera":
-        raise SceneforgeError(f"{run} is a camera run: give a depth, seg or overhead run, and the camera run "
-                              "with --camera-run")
-    stages = {"depth": ("depth",), "seg": ("seg",), "overhead": ("depth", "seg", "overhead")}[config.stage]
+    stage = get_stage(config.stage)
+    if stage.predicts_with is not None:
+        raise SceneforgeError(f"{run} is a {stage.name} run: give the {stage.predicts_with} run it goes with as "
+                              f"RUN, and this one with --{stage.name}-run")
+    stages = stage.predicts
     if camera_run is not None:
-        if config.stage != "overhead":
-            raise SceneforgeError("--camera-run places overhead cameras: it needs an overhead run")
+        camera = REGISTRY["camera"]
+        if stage.name != camera.predicts_with:
+            raise SceneforgeError(f"--camera-run places overhead cameras: it needs an {camera.predicts_with} run")
         cam_config, cam_nets = load_run(camera_run, dev)
-        if cam_config.stage != "camera":
+        if cam_config.stage != camera.name:
             raise SceneforgeError(f"{camera_run} is a {cam_config.stage} run, not a camera run")
         nets.update(camera=cam_nets["camera"], camera_depth=cam_nets["depth"])
-        stages += ("camera",)
+        stages += camera.predicts
     return config, nets, stages
 
 
