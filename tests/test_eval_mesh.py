@@ -142,3 +142,26 @@ def test_camera_with_principal_point_offset_is_respected():
     mesh = perspective_mesh(np.full((H, W), 3.0), K2, cam.cam_to_world)
     uv, _ = cam.project(mesh.vertices)
     assert uv[:, 0].min() == pytest.approx(0.5) and uv[:, 0].max() == pytest.approx(W - 0.5)
+
+
+def test_edge_factor_presets_per_layer():
+    paper, reference = MeshingConfig(), MeshingConfig(preset="reference")
+    assert [paper.edge_factor(p) for p in ("D1", "D4", "D5", "overhead")] == [7.0, 7.0, 7.0, 7.0]
+    assert [reference.edge_factor(p) for p in ("D1", "D4", "D5", "overhead")] == [10.0, 10.0, 15.0, 10.0]
+    assert MeshingConfig(preset="reference", a=12.0).edge_factor("D5") == 12.0
+    with pytest.raises(ValueError, match="preset"):
+        MeshingConfig(preset="mine")
+    with pytest.raises(ValueError, match="no part"):
+        paper.edge_factor("D6")
+
+
+def test_the_reference_preset_meshes_d5_with_its_own_factor():
+    # a depth step of 12 footprints: joined at a = 15 (D5 under the reference preset),
+    # cut at a = 7 and at a = 10 (D1 under either preset)
+    z = 2.0
+    depth = np.full((5, 4, 4), z, dtype=np.float32)
+    depth[:, :, 2:] = z + 12 * z / F
+    view = EvalView(depth, K, np.eye(4), np.full((4, 4), np.nan), np.eye(4), 1.0, np.zeros(5))
+    paper, reference = view.meshes(MeshingConfig()), view.meshes(MeshingConfig(preset="reference"))
+    assert len(paper["D5"]) == len(paper["D1"]) == len(reference["D1"]) == 2 * 2 * 3
+    assert len(reference["D5"]) == 2 * 3 * 3
