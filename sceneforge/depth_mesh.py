@@ -45,41 +45,50 @@ def grid_faces(depth: np.ndarray, footprint: np.ndarray, a: float) -> np.ndarray
             pixel except for the shape without it (then the top-right one)
     """
     depth = np.asarray(depth, dtype=np.float64)
+    footprint = np.asarray(footprint, dtype=np.float64)
     h, w = depth.shape
     if h < 2 or w < 2:
         return np.zeros((0, 3), dtype=np.int64)
-    corner_slices = [(slice(dr, h - 1 + dr), slice(dc, w - 1 + dc)) for dr, dc in _CORNER_OFFSETS]
     valid = np.isfinite(depth)
-    d = np.stack([depth[s] for s in corner_slices])          # (4, H-1, W-1)
-    ok = np.stack([valid[s] for s in corner_slices])
-    fp = np.stack([np.asarray(footprint, dtype=np.float64)[s] for s in corner_slices])
-    mask = (ok * np.array([1, 2, 4, 8])[:, None, None]).sum(axis=0)
-
-    # The edge rule, per corner pair: the jump against the nearer corner's footprint.
     with np.errstate(invalid="ignore"):
-        jump = {}
-        for i, j in _PAIRS:
-            near = np.where(d[i] <= d[j], fp[i], fp[j])
-            limit = a * near * (math.sqrt(2.0) if (i, j) in _DIAGONALS else 1.0)
-            jump[i, j] = np.abs(d[i] - d[j]) > limit
+        # The edge rule, per pixel pair: the jump against the nearer pixel's footprint. Each
+        # horizontal and vertical pair is shared by two blocks: test it once for the image.
+        across = _jumps(depth[:, :-1], depth[:, 1:], footprint[:, :-1], footprint[:, 1:], a)  # (H, W-1)
+        down = _jumps(depth[:-1], depth[1:], footprint[:-1], footprint[1:], a)              # (H-1, W)
+        d = [depth[dr:h - 1 + dr, dc:w - 1 + dc] for dr, dc in _CORNER_OFFSETS]
+        fp = [footprint[dr:h - 1 + dr, dc:w - 1 + dc] for dr, dc in _CORNER_OFFSETS]
+        diagonal = a * math.sqrt(2.0)
+        jump = {(0, 1): across[:-1], (2, 3): across[1:], (0, 2): down[:, :-1], (1, 3): down[:, 1:],
+                (0, 3): _jumps(d[0], d[3], fp[0], fp[3], diagonal), (1, 2): _jumps(d[1], d[2], fp[1], fp[2], diagonal)}
         along_03 = np.abs(d[0] - d[3]) < np.abs(d[1] - d[2])
-    full = mask == 15
+    ok = [valid[dr:h - 1 + dr, dc:w - 1 + dc] for dr, dc in _CORNER_OFFSETS]
+    full = ok[0] & ok[1] & ok[2] & ok[3]
+    split_12 = full & ~along_03
+    split_03 = full & along_03
+    # A block with exactly three valid corners gives the triangle of those three.
     emit = (
-        (mask == 7) | (full & ~along_03),   # 0 2 1
-        (mask == 11) | (full & along_03),   # 0 3 1
-        (mask == 13) | (full & along_03),   # 0 2 3
-        (mask == 14) | (full & ~along_03),  # 1 2 3
+        (ok[0] & ok[1] & ok[2] & ~ok[3]) | split_12,  # 0 2 1
+        (ok[0] & ok[1] & ~ok[2] & ok[3]) | split_03,  # 0 3 1
+        (ok[0] & ~ok[1] & ok[2] & ok[3]) | split_03,  # 0 2 3
+        (~ok[0] & ok[1] & ok[2] & ok[3]) | split_12,  # 1 2 3
     )
-    top_left = np.arange(h * w, dtype=np.int64).reshape(h, w)[:-1, :-1].ravel()
-    corner_pixel = np.stack([top_left + dr * w + dc for dr, dc in _CORNER_OFFSETS])  # (4, blocks)
+    corner_offset = np.array([dr * w + dc for dr, dc in _CORNER_OFFSETS])
     faces = []
     for tri, keep in zip(_TRIANGLES, emit):
         for k in range(3):
-            i, j = sorted((tri[k], tri[(k + 1) % 3]))
-            keep = keep & ~jump[i, j]
+            keep &= ~jump[tuple(sorted((tri[k], tri[(k + 1) % 3])))]
         blocks = np.flatnonzero(keep)
-        faces.append(corner_pixel[tri][:, blocks].T)
+        # block b = row r, column c of the (H-1) × (W-1) blocks: its top-left pixel is b + r
+        top_left = blocks + blocks // (w - 1)
+        faces.append(top_left[:, None] + corner_offset[tri])
     return np.concatenate(faces)
+
+
+def _jumps(d_i, d_j, f_i, f_j, a: float) -> np.ndarray:
+    """(...) bool: ``|d_i - d_j|`` exceeds ``a`` × the footprint of the nearer of the two."""
+    near = np.where(d_i <= d_j, f_i, f_j)
+    near *= a
+    return np.abs(d_i - d_j) > near
 
 
 def compact(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -754,21 +754,17 @@ def mesh_provenance(config: ViewMeshConfig, width: int, height: int) -> dict:
     }
 
 
-def view_mesh(
-    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None,
-    tracer: "HouseTracer | None" = None,
-) -> ViewMesh:
-    """The ground-truth mesh of one view (SPEC §5).
+def object_mesh(
+    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None
+) -> ClippedMesh:
+    """The objects' ground truth of a view (SPEC §5).
 
-    Objects: the instances that fill a frontal layer (ids in ``layers.instance``), clipped
-    to the frustum (:func:`frustum_planes`); faces with any vertex projecting more than
+    The instances that fill a frontal layer (ids in ``layers.instance``), clipped to the
+    frustum (:func:`frustum_planes`); faces with any vertex projecting more than
     ``config.behind_envelope`` behind ``D5`` (``layers.depth[ENVELOPE_LAYER]``) at its pixel
     are dropped, after refining the faces that fail (:func:`drop_behind_envelope`); a NaN
-    ``D5`` pixel drops nothing. Envelope: :func:`envelope_surface`, traced with ``tracer``
-    (a :class:`~sceneforge.raytrace.HouseTracer` of ``house``, built here when omitted).
+    ``D5`` pixel drops nothing.
     """
-    from .raytrace import HouseTracer
-
     config = config or ViewMeshConfig()
     d5 = np.asarray(layers.depth[ENVELOPE_LAYER])
     if d5.shape != (camera.height, camera.width):
@@ -782,5 +778,17 @@ def view_mesh(
     # np.unique(inst[inst >= 0]) without sorting every pixel.
     object_ids = np.flatnonzero(np.bincount(inst[inst >= 0].ravel()))
     (objects,) = _clipped_meshes(house, [object_ids], camera, planes, d5, limit, config)
-    envelope = envelope_surface(tracer or HouseTracer(house), camera, config)
-    return ViewMesh(objects=objects, envelope=envelope)
+    return objects
+
+
+def view_mesh(
+    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None,
+    tracer: "HouseTracer | None" = None,
+) -> ViewMesh:
+    """The ground-truth mesh of one view (SPEC §5): :func:`object_mesh` and
+    :func:`envelope_surface`, traced with ``tracer`` (a :class:`~sceneforge.raytrace.HouseTracer`
+    of ``house``, built here when omitted)."""
+    from .raytrace import HouseTracer
+
+    objects = object_mesh(house, camera, layers, config)
+    return ViewMesh(objects=objects, envelope=envelope_surface(tracer or HouseTracer(house), camera, config))
