@@ -48,6 +48,18 @@ def test_coverage_prints_the_table_beside_the_paper_and_plots(store, tmp_path):
     assert values["variants"]["D1-5"]["all"]["recall"] == pytest.approx(recall[4], abs=5e-4)
 
 
+def test_the_store_records_the_rules_of_its_ground_truth_meshes(store):
+    from sceneforge.store import open_store, validate_store
+
+    attrs = open_store(str(store)).attrs
+    assert attrs["schema_version"] == "1.1"
+    rules = attrs["ground_truth_mesh"]
+    assert rules["envelope"]["resolution"] == "96x72" and rules["envelope"]["envelope_a"] == 15.0
+    assert rules["envelope"]["rule"].startswith("D5 surface")
+    assert rules["objects"]["behind_envelope"] == 0.1
+    assert validate_store(str(store)) == []
+
+
 def test_coverage_with_the_reference_preset_says_so(store, tmp_path):
     js = tmp_path / "cov.json"
     res = run("evaluate", "coverage", store, "--density", 1000, "--preset", "reference", "--plot",
