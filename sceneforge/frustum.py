@@ -70,10 +70,12 @@ class ViewMeshConfig:
 
 @dataclass(frozen=True, eq=False)
 class ClippedMesh:
-    """A world-space triangle mesh cut out of a house.
+    """A world-space triangle mesh of part of a house: faces cut out of its instances, or
+    the envelope's D5 surface (:func:`envelope_surface`).
 
     vertices : (n, 3) float64  world coordinates, metres
-    faces    : (m, 3) int32    indices into ``vertices``, winding of the source faces
+    faces    : (m, 3) int32    indices into ``vertices``; cut faces keep the winding of their
+                               source faces, D5 surface faces face the camera
     instance : (m,) int32      instance of every face (index into ``house.instances``)
     """
 
