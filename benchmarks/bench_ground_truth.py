@@ -131,7 +131,7 @@ def time_views(house, cameras, backend: str, config: ViewConfig, repeat: int = 3
             t2 = time.perf_counter()
             overhead_truth(house, top, tr, config.overhead)
             t3 = time.perf_counter()
-            view_mesh(house, cam, layers, config.mesh)
+            view_mesh(house, cam, layers, config.mesh, tr)
             t4 = time.perf_counter()
             for k, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 stages[k] += dt / len(cameras)

@@ -15,6 +15,7 @@ from .options import ConfigOption, config_options
 SURFACE_OPTIONS = (
     ConfigOption("--density", "surface.density", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--seed", "seed"),
+    ConfigOption("--preset", "meshing.preset"),
     ConfigOption("--a", "meshing.a", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--threshold", "surface.threshold", type=click.FloatRange(min=0, min_open=True)),
 )

@@ -1,12 +1,18 @@
 """Frustum planes, triangle clipping and the ground-truth mesh of one view (SPEC §5).
 
-The ground truth a reconstruction is scored against is the part of the house inside the
-view frustum *(ref)*: object instances that fill a frontal layer and the room envelope,
-with triangles cut at the left, right, top, bottom and near planes, and faces that lie
-behind the envelope depth ``D5`` removed. Unlike the reference, a face only partly
-hidden behind the envelope is refined first so that its visible part stays: on the
-bundled toy houses, dropping whole faces kept only 22–88 % (median about half) of the
-envelope area that the refined mesh keeps.
+The ground truth a reconstruction is scored against is what the view can see *(ref)*:
+
+- **objects**: the object instances that fill a frontal layer, with triangles cut at the
+  left, right, top, bottom and near planes, and faces that lie behind the envelope depth
+  ``D5`` removed. Unlike the reference, a face only partly hidden behind the envelope is
+  refined first so that its visible part stays (``ViewMeshConfig(max_edge_pixels=None)``
+  is the reference rule);
+- **envelope**: not the envelope polygons but the D5 layer itself as a surface
+  (:func:`envelope_surface`): D5 traced at 1.5× the view's resolution and triangulated
+  by the depth → mesh rule of SPEC §11 (:mod:`sceneforge.depth_mesh`) at ``a = 15``. The
+  polygons behind the visible envelope — back faces of thin walls, the next room's wall
+  skin, floor-slab undersides — are seen by no layer, yet lie within the 0.1 m margin of
+  the object rule, so by that rule they would be ground truth that nothing can cover.
 
 Planes are rows ``(nx, ny, nz, d)`` in world coordinates with unit normals pointing into
 the frustum: a point ``p`` is inside when ``n · p + d >= 0``.
@@ -20,11 +26,13 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from .conventions import ENVELOPE_LAYER, tol
+from .depth_mesh import compact, perspective_faces, perspective_points
 
 if TYPE_CHECKING:
     from .cameras import Camera
     from .houses import House
     from .layers import Layers
+    from .raytrace import HouseTracer
 
 #: Order of the rows of :func:`frustum_planes`.
 PLANE_NAMES: tuple[str, ...] = ("left", "right", "top", "bottom", "near")
@@ -32,31 +40,42 @@ PLANE_NAMES: tuple[str, ...] = ("left", "right", "top", "bottom", "near")
 
 @dataclass(frozen=True)
 class ViewMeshConfig:
-    """How the ground-truth mesh of a view is cut out of the house."""
+    """How the ground-truth mesh of a view is made: objects cut out of the house, the
+    envelope from its D5 layer."""
 
     #: distance of the near clipping plane from the camera centre, metres
     near: float = 0.01
-    #: faces with a vertex further than this behind ``D5`` at its pixel are dropped, metres
+    #: object faces with a vertex further than this behind ``D5`` at its pixel are dropped, metres
     behind_envelope: float = tol.behind_envelope
     #: vertices up to this far outside a plane count as inside (no sliver cuts), metres
     clip_tolerance: float = tol.clip
-    #: a face with a vertex behind ``D5`` is bisected down to edges of this many pixels
-    #: and only its hidden pieces are dropped; None drops the whole face (the reference)
+    #: an object face with a vertex behind ``D5`` is bisected down to edges of this many
+    #: pixels and only its hidden pieces are dropped; None drops the whole face (the reference)
     max_edge_pixels: float | None = 4.0
+    #: the envelope is D5 traced at this many times the view's width and height (the reference: 1.5)
+    envelope_upscale: float = 1.5
+    #: edge factor of the depth → mesh rule (SPEC §11) the traced D5 is triangulated with (the reference: 15)
+    envelope_a: float = 15.0
 
     def __post_init__(self):
         if not self.near > 0:
             raise ValueError(f"near must be > 0 m, got {self.near}")
         if self.max_edge_pixels is not None and not self.max_edge_pixels >= 1:
             raise ValueError(f"max_edge_pixels must be None or >= 1, got {self.max_edge_pixels}")
+        if not self.envelope_upscale > 0:
+            raise ValueError(f"envelope_upscale must be > 0, got {self.envelope_upscale}")
+        if not self.envelope_a > 0:
+            raise ValueError(f"envelope_a must be > 0, got {self.envelope_a}")
 
 
 @dataclass(frozen=True, eq=False)
 class ClippedMesh:
-    """A world-space triangle mesh cut out of a house.
+    """A world-space triangle mesh of part of a house: faces cut out of its instances, or
+    the envelope's D5 surface (:func:`envelope_surface`).
 
     vertices : (n, 3) float64  world coordinates, metres
-    faces    : (m, 3) int32    indices into ``vertices``, winding of the source faces
+    faces    : (m, 3) int32    indices into ``vertices``; cut faces keep the winding of their
+                               source faces, D5 surface faces face the camera
     instance : (m,) int32      instance of every face (index into ``house.instances``)
     """
 
@@ -72,7 +91,12 @@ class ClippedMesh:
 
 @dataclass(frozen=True, eq=False)
 class ViewMesh:
-    """Ground-truth geometry of one view: objects and room envelope kept apart."""
+    """Ground-truth geometry of one view: objects and room envelope kept apart.
+
+    objects  : frustum-clipped faces of the layer instances; ``instance`` their instance
+    envelope : the D5 surface (:func:`envelope_surface`); ``instance`` the D5 instance of
+               each face's first corner pixel
+    """
 
     objects: ClippedMesh
     envelope: ClippedMesh
@@ -694,16 +718,53 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
     return meshes
 
 
-def view_mesh(
-    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None
-) -> ViewMesh:
-    """The ground-truth mesh of one view (SPEC §5).
+def envelope_surface(tracer: "HouseTracer", camera: "Camera", config: ViewMeshConfig | None = None) -> ClippedMesh:
+    """The envelope's ground truth of a view (SPEC §5): the D5 layer as a surface.
 
-    Objects: the instances that fill a frontal layer (ids in ``layers.instance``).
-    Envelope: every envelope instance of the house. Both are clipped to the frustum
-    (:func:`frustum_planes`), then faces with any vertex projecting more than
-    ``config.behind_envelope`` behind ``D5`` (``layers.depth[ENVELOPE_LAYER]``) at its pixel are
-    dropped, after refining the faces that fail (:func:`drop_behind_envelope`); a NaN
+    D5 (each ray's first envelope hit, a first-hit query) is traced from ``camera`` at
+    ``config.envelope_upscale`` times its resolution (same pose and field of view,
+    :meth:`Camera.resized`) and triangulated by the depth → mesh rule of SPEC §11 at
+    ``config.envelope_a`` (:func:`sceneforge.depth_mesh.grid_faces`). Pixels whose ray
+    leaves the house give no vertex. Each face's ``instance`` is the envelope instance
+    its first corner pixel sees (the block's top-left pixel, or its top-right one).
+    """
+    config = config or ViewMeshConfig()
+    fine = camera.resized(round(camera.width * config.envelope_upscale),
+                          round(camera.height * config.envelope_upscale))
+    origins, directions, depth_scale = fine.rays()
+    d5 = tracer.first_hit(origins, directions, instances=tracer.triangles.envelope)
+    depth = (d5.t * depth_scale).reshape(fine.shape)
+    pixels = perspective_faces(depth, fine.K, config.envelope_a)
+    vertices, faces = compact(perspective_points(depth, fine.K, fine.cam_to_world).reshape(-1, 3), pixels)
+    return ClippedMesh(vertices, faces.astype(np.int32), d5.instance[pixels[:, 0]])
+
+
+def mesh_provenance(config: ViewMeshConfig, width: int, height: int) -> dict:
+    """The rules that made the ground-truth meshes of ``width``×``height`` views, as a
+    store records them."""
+    upscaled = f"{round(width * config.envelope_upscale)}x{round(height * config.envelope_upscale)}"
+    return {
+        "objects": {
+            "rule": "layer instances clipped to the frustum, faces behind D5 dropped (SPEC 5)",
+            "behind_envelope": config.behind_envelope, "max_edge_pixels": config.max_edge_pixels,
+        },
+        "envelope": {
+            "rule": "D5 surface: D5 traced at envelope_upscale x the view resolution, "
+                    "triangulated by the depth to mesh rule at edge factor envelope_a (SPEC 5, 11)",
+            "envelope_upscale": config.envelope_upscale, "resolution": upscaled, "envelope_a": config.envelope_a,
+        },
+    }
+
+
+def object_mesh(
+    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None
+) -> ClippedMesh:
+    """The objects' ground truth of a view (SPEC §5).
+
+    The instances that fill a frontal layer (ids in ``layers.instance``), clipped to the
+    frustum (:func:`frustum_planes`); faces with any vertex projecting more than
+    ``config.behind_envelope`` behind ``D5`` (``layers.depth[ENVELOPE_LAYER]``) at its pixel
+    are dropped, after refining the faces that fail (:func:`drop_behind_envelope`); a NaN
     ``D5`` pixel drops nothing.
     """
     config = config or ViewMeshConfig()
@@ -718,6 +779,18 @@ def view_mesh(
     inst = np.asarray(layers.instance)
     # np.unique(inst[inst >= 0]) without sorting every pixel.
     object_ids = np.flatnonzero(np.bincount(inst[inst >= 0].ravel()))
-    envelope_ids = [k for k, inst in enumerate(house.instances) if inst.envelope]
-    objects, envelope = _clipped_meshes(house, [object_ids, envelope_ids], camera, planes, d5, limit, config)
-    return ViewMesh(objects=objects, envelope=envelope)
+    (objects,) = _clipped_meshes(house, [object_ids], camera, planes, d5, limit, config)
+    return objects
+
+
+def view_mesh(
+    house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None,
+    tracer: "HouseTracer | None" = None,
+) -> ViewMesh:
+    """The ground-truth mesh of one view (SPEC §5): :func:`object_mesh` and
+    :func:`envelope_surface`, traced with ``tracer`` (a :class:`~sceneforge.raytrace.HouseTracer`
+    of ``house``, built here when omitted)."""
+    from .raytrace import HouseTracer
+
+    objects = object_mesh(house, camera, layers, config)
+    return ViewMesh(objects=objects, envelope=envelope_surface(tracer or HouseTracer(house), camera, config))

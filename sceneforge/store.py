@@ -37,6 +37,7 @@ import numpy as np
 from . import conventions
 from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
 from .errors import MissingDependencyError, SceneforgeError
+from .frustum import mesh_provenance
 
 if TYPE_CHECKING:
     import zarr
@@ -45,7 +46,7 @@ if TYPE_CHECKING:
     from .config import DatasetConfig
     from .view import ViewGroundTruth
 
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"  # 1.1: the envelope mesh is the D5 surface (SPEC §5), not envelope polygons
 #: the two ground-truth meshes of a view, in the order the store keeps them
 MESH_KINDS: tuple[str, ...] = ("objects", "envelope")
 #: ragged mesh arrays: rows per chunk, and chunks per shard
@@ -158,6 +159,8 @@ def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dic
         "config": config.to_dict(),
         "conventions": conventions_attrs(),
         "nyu40": nyu40_table(),
+        "ground_truth_mesh": (mesh_provenance(config.view.mesh, config.width, config.height)
+                              if config.view.with_mesh else None),
         "houses": [],
         "failures": [],
     }

@@ -26,7 +26,7 @@ class ViewConfig:
 
     #: overhead camera heuristics and overhead ground truth settings
     overhead: OverheadConfig = field(default_factory=OverheadConfig)
-    #: frustum clipping of the ground-truth mesh
+    #: the ground-truth mesh: objects clipped to the frustum, the envelope from D5
     mesh: ViewMeshConfig = field(default_factory=ViewMeshConfig)
     #: compute the ground-truth mesh (only the evaluation needs it)
     with_mesh: bool = True
@@ -40,7 +40,7 @@ class ViewGroundTruth:
     layers          : D1..D5 (5, H, W), classes, instances, normals
     overhead_camera : the virtual camera with its candidate boxes and parameters
     overhead        : overhead layers (5, Ho, Wo), height map and classes
-    mesh            : frustum-clipped objects and envelope, or None when not asked for
+    mesh            : frustum-clipped objects and the D5 envelope surface, or None when not asked for
     """
 
     camera: "Camera"
@@ -69,5 +69,5 @@ def compute_view(
         layers=layers,
         overhead_camera=top,
         overhead=overhead_truth(house, top, tracer, config.overhead),
-        mesh=view_mesh(house, camera, layers, config.mesh) if config.with_mesh else None,
+        mesh=view_mesh(house, camera, layers, config.mesh, tracer) if config.with_mesh else None,
     )

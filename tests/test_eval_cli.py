@@ -40,17 +40,46 @@ def test_coverage_prints_the_table_beside_the_paper_and_plots(store, tmp_path):
     recall = [float(r[-4]) for r in rows.values()]
     assert (np.diff(recall) >= 0).all() and recall[-1] > 0.8
     assert "mean over 3 views" in res.output
+    assert "meshing: edge factor preset paper: a = 7 for every layer" in res.output
     assert png.stat().st_size > 20_000
     values = json.loads(js.read_text())
     assert values["views"] == 3 and values["density"] == 1000 and values["seed"] == 0
+    assert values["preset"] == "paper" and set(values["a"].values()) == {7.0}
     assert values["variants"]["D1-5"]["all"]["recall"] == pytest.approx(recall[4], abs=5e-4)
+
+
+def test_the_store_records_the_rules_of_its_ground_truth_meshes(store):
+    from sceneforge.store import open_store, validate_store
+
+    attrs = open_store(str(store)).attrs
+    assert attrs["schema_version"] == "1.1"
+    rules = attrs["ground_truth_mesh"]
+    assert rules["envelope"]["resolution"] == "96x72" and rules["envelope"]["envelope_a"] == 15.0
+    assert rules["envelope"]["rule"].startswith("D5 surface")
+    assert rules["objects"]["behind_envelope"] == 0.1
+    assert validate_store(str(store)) == []
+
+
+def test_coverage_with_the_reference_preset_says_so(store, tmp_path):
+    js = tmp_path / "cov.json"
+    res = run("evaluate", "coverage", store, "--density", 1000, "--preset", "reference", "--plot",
+              tmp_path / "cov.png", "--json", js)
+    assert res.exit_code == 0, res.output
+    assert "edge factor preset reference: a = 10 for D1-D4 and the overhead map, 15 for D5" in res.output
+    a = json.loads(js.read_text())["a"]
+    assert a == {"D1": 10.0, "D2": 10.0, "D3": 10.0, "D4": 10.0, "D5": 15.0, "overhead": 10.0}
+    res = run("evaluate", "coverage", store, "--density", 1000, "--preset", "reference", "--a", 12,
+              "--plot", tmp_path / "cov.png")
+    assert "a = 12 for every layer (preset reference overridden)" in res.output
+    assert run("evaluate", "coverage", store, "--preset", "mine").exit_code == 2
 
 
 def test_predictions_of_the_ground_truth_itself(store, tmp_path):
     png = tmp_path / "pred.png"
     res = run("evaluate", "predictions", store, store, "--density", 1000, "--plot", png)
     assert res.exit_code == 0, res.output
-    lines = {line[:18].strip(): line[18:].split() for line in res.output.splitlines()[2:6]}
+    assert res.output.splitlines()[1] == "meshing: edge factor preset paper: a = 7 for every layer"
+    lines = {line[:18].strip(): line[18:].split() for line in res.output.splitlines()[3:7]}
     assert list(lines) == ["D1", "D1 & overhead", "D1-4", "D1-4 & overhead"]
     assert lines["D1-4 & overhead"][2:] == ["0.519", "0.457"]
     # ground-truth layers lie on the ground-truth objects, but for triangles the edge rule

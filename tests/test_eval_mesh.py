@@ -142,3 +142,71 @@ def test_camera_with_principal_point_offset_is_respected():
     mesh = perspective_mesh(np.full((H, W), 3.0), K2, cam.cam_to_world)
     uv, _ = cam.project(mesh.vertices)
     assert uv[:, 0].min() == pytest.approx(0.5) and uv[:, 0].max() == pytest.approx(W - 0.5)
+
+
+def test_edge_factor_presets_per_layer():
+    paper, reference = MeshingConfig(), MeshingConfig(preset="reference")
+    assert [paper.edge_factor(p) for p in ("D1", "D4", "D5", "overhead")] == [7.0, 7.0, 7.0, 7.0]
+    assert [reference.edge_factor(p) for p in ("D1", "D4", "D5", "overhead")] == [10.0, 10.0, 15.0, 10.0]
+    assert MeshingConfig(preset="reference", a=12.0).edge_factor("D5") == 12.0
+    with pytest.raises(ValueError, match="preset"):
+        MeshingConfig(preset="mine")
+    with pytest.raises(ValueError, match="no part"):
+        paper.edge_factor("D6")
+
+
+def test_the_reference_preset_meshes_d5_with_its_own_factor():
+    # a depth step of 12 footprints: joined at a = 15 (D5 under the reference preset),
+    # cut at a = 7 and at a = 10 (D1 under either preset)
+    z = 2.0
+    depth = np.full((5, 4, 4), z, dtype=np.float32)
+    depth[:, :, 2:] = z + 12 * z / F
+    view = EvalView(depth, K, np.eye(4), np.full((4, 4), np.nan), np.eye(4), 1.0, np.zeros(5))
+    paper, reference = view.meshes(MeshingConfig()), view.meshes(MeshingConfig(preset="reference"))
+    assert len(paper["D5"]) == len(paper["D1"]) == len(reference["D1"]) == 2 * 2 * 3
+    assert len(reference["D5"]) == 2 * 3 * 3
+
+
+def plain_grid_faces(depth, footprint, a):
+    """The block rule and the edge rule in their plainest form, block by block: the corners
+    (pixel indices) of every triangle, in grid_faces's order (by shape, then block)."""
+    h, w = depth.shape
+    shapes = [(0, 2, 1), (0, 3, 1), (0, 2, 3), (1, 2, 3)]
+    out = []
+    for r in range(h - 1):
+        for c in range(w - 1):
+            pixel = [r * w + c, r * w + c + 1, (r + 1) * w + c, (r + 1) * w + c + 1]
+            z = [depth.flat[p] for p in pixel]
+            valid = [np.isfinite(x) for x in z]
+            if sum(valid) == 4:
+                along_03 = abs(z[0] - z[3]) < abs(z[1] - z[2])
+                chosen = [1, 2] if along_03 else [0, 3]
+            elif sum(valid) == 3:
+                chosen = [k for k, s in enumerate(shapes) if all(valid[i] for i in s)]
+            else:
+                chosen = []
+            for k in chosen:
+                tri = shapes[k]
+                edges = [(tri[e], tri[(e + 1) % 3]) for e in range(3)]
+                cut = False
+                for i, j in edges:
+                    near = footprint.flat[pixel[i]] if z[i] <= z[j] else footprint.flat[pixel[j]]
+                    diagonal = {i, j} in ({0, 3}, {1, 2})
+                    cut |= abs(z[i] - z[j]) > a * near * (np.sqrt(2.0) if diagonal else 1.0)
+                if not cut:
+                    out.append((k, r * (w - 1) + c, [pixel[i] for i in tri]))
+    out.sort(key=lambda x: (x[0], x[1]))
+    return np.array([x[2] for x in out], dtype=np.int64).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_grid_faces_match_the_plain_block_by_block_rule(seed):
+    from sceneforge.depth_mesh import grid_faces
+
+    rng = np.random.default_rng(seed)
+    h, w = rng.integers(2, 24, 2)
+    depth = 1.0 + rng.random((h, w)) * rng.choice([0.01, 0.3, 3.0])
+    depth[rng.random((h, w)) < 0.2] = np.nan
+    footprint = 0.01 + 0.04 * rng.random((h, w))
+    for a in (7.0, 10.0, 15.0):
+        np.testing.assert_array_equal(grid_faces(depth, footprint, a), plain_grid_faces(depth, footprint, a))

@@ -17,6 +17,7 @@ from sceneforge.frustum import (
     clip_triangles,
     clip_triangles_by_plane,
     drop_behind_envelope,
+    envelope_surface,
     frustum_planes,
     triangle_areas,
     view_mesh,
@@ -196,7 +197,14 @@ def wall_house():
     return h
 
 
-def test_view_mesh_keeps_layer_objects_and_the_envelope_in_front_of_d5():
+def fine_area(camera, upscale, area):
+    """``area`` of a plane filling the view, as the D5 surface covers it: the triangulated
+    grid of the traced D5 spans from the first to the last pixel centre."""
+    w, h = round(camera.width * upscale), round(camera.height * upscale)
+    return area * (w - 1) / w * (h - 1) / h
+
+
+def test_view_mesh_keeps_layer_objects_and_the_d5_surface_as_envelope():
     house = wall_house()
     cam = camera_looking_down_minus_z()
     layers = frontal_layers(house, cam, HouseTracer(house))
@@ -205,12 +213,15 @@ def test_view_mesh_keeps_layer_objects_and_the_envelope_in_front_of_d5():
     # Objects: only the visible box, whole (6 faces of 0.4 × 0.4 m).
     assert set(mesh.objects.instance.tolist()) == {3}
     assert mesh.objects.area == pytest.approx(6 * 0.16)
-    # Envelope: the wall cut to the 2.4 × 1.8 m footprint at depth 3, plus the panel only
-    # 5 cm behind it; the far wall is 3 m behind D5 and goes.
-    assert set(mesh.envelope.instance.tolist()) == {0, 1}
-    assert mesh.envelope.area == pytest.approx(2.4 * 1.8 + 0.2 * 0.2)
+    # Envelope: the D5 surface, the wall in its 2.4 × 1.8 m footprint at depth 3. The panel
+    # 5 cm behind it and the far wall are hidden by the wall and are not ground truth.
+    assert set(mesh.envelope.instance.tolist()) == {0}
+    assert mesh.envelope.area == pytest.approx(fine_area(cam, 1.5, 2.4 * 1.8))
+    np.testing.assert_allclose(mesh.envelope.vertices[:, 2], -3.0, atol=1e-9)
     assert mesh.envelope.faces.dtype == np.int32 and mesh.envelope.vertices.dtype == np.float64
     assert len(mesh.envelope.faces) == len(mesh.envelope.instance)
+    # Traced at 1.5 × 40 × 30 pixels: every pixel is a vertex, every block two triangles.
+    assert len(mesh.envelope.vertices) == 60 * 45 and len(mesh.envelope.faces) == 2 * 59 * 44
 
 
 def test_view_mesh_drops_objects_behind_d5_and_keeps_faces_where_d5_is_nan():
@@ -223,8 +234,43 @@ def test_view_mesh_drops_objects_behind_d5_and_keeps_faces_where_d5_is_nan():
     mesh = view_mesh(house, cam, layers_like(np.full((30, 40), np.nan, np.float32), [3, 4]))
     assert set(mesh.objects.instance.tolist()) == {3, 4}
     assert mesh.objects.area == pytest.approx(2 * 6 * 0.16)
-    # The far wall at depth 6 now stays, cut to its 4.8 × 3.6 m footprint.
-    assert mesh.envelope.area == pytest.approx(2.4 * 1.8 + 0.2 * 0.2 + 4.8 * 3.6)
+    # The envelope is traced from the house, whatever D5 the layers hold.
+    assert mesh.envelope.area == pytest.approx(fine_area(cam, 1.5, 2.4 * 1.8))
+
+
+def one_triangle_house(corners):
+    """An object triangle (world corners (3, 3)) and nothing else."""
+    h = House(id="triangle", instances=[], rooms=[Room("r0", "room", 0)])
+    make_instance(h, name="board", category=29, label="board", room_id="r0",
+                  vertices=np.asarray(corners, dtype=float), faces=np.array([[0, 1, 2]]))
+    return h
+
+
+@pytest.mark.parametrize("max_edge", [None, 4.0])
+def test_an_object_vertex_outside_the_image_or_over_a_nan_d5_pixel_does_not_count(max_edge):
+    cam = camera_looking_down_minus_z()  # 40 × 30 px, f = 50: at depth 2, 1.6 × 1.2 m
+    config = ViewMeshConfig(max_edge_pixels=max_edge)
+    # A triangle at depth 2 reaching 4 m out of the image to the left and up. D5 = 1.5 m
+    # everywhere would hide it; here D5 is 3 m except at the top-left pixel, so the face is
+    # in front of D5 wherever it is in the image, and only a vertex projected outside the
+    # image and clamped onto the border would find the 1.5 m there.
+    far = one_triangle_house([[-4.0, 5.0, -2.0], [0.4, 0.8, -2.0], [0.6, 1.2, -2.0]])
+    d5 = np.full((30, 40), 3.0, np.float32)
+    d5[0, 0] = 1.5
+    board = view_mesh(far, cam, layers_like(d5, [0]), config).objects
+    inside, _ = clip_triangles(far.instances[0].vertices[None], frustum_planes(cam))
+    assert board.area == pytest.approx(triangle_areas(inside).sum()) and board.area > 0.05
+    # A triangle at depth 2 with one corner 3 m behind D5 = 2.5 m: that corner drops the face,
+    # unless D5 is NaN at its pixel (the ray there left the house).
+    deep = one_triangle_house([[-0.2, 0.8, -2.0], [0.2, 0.8, -2.0], [0.0, 1.0, -5.5]])
+    d5 = np.full((30, 40), 2.5, np.float32)
+    uv, _ = cam.project([[0.0, 1.0, -5.5]])
+    u, v = uv[0]
+    assert view_mesh(deep, cam, layers_like(d5, [0]), config).objects.area < 0.5 * triangle_areas(
+        deep.instances[0].vertices[None])[0]
+    d5[int(v), int(u)] = np.nan
+    kept = view_mesh(deep, cam, layers_like(d5, [0]), config).objects
+    assert kept.area == pytest.approx(triangle_areas(deep.instances[0].vertices[None])[0])
 
 
 def test_view_mesh_rejects_layers_of_another_size():
@@ -233,27 +279,141 @@ def test_view_mesh_rejects_layers_of_another_size():
         view_mesh(house, camera_looking_down_minus_z(), layers_like(np.ones((10, 10)), []))
 
 
-def test_faces_half_hidden_behind_the_envelope_keep_their_visible_part():
-    # A wall 2 m ahead covers the left half of the view (x < 0); the wall 3 m ahead is
-    # seen only for x in [0, 1.2] (1.8 m high): 2.16 m².
+def test_object_faces_half_hidden_behind_the_envelope_keep_their_visible_part():
+    # A wall 2 m ahead covers the left half of the view (x < 0); a board (an object) at
+    # 2.9 m in front of the wall at 3 m is seen only for x in [0, 1.16] (1.74 m high).
     h = House(id="occluded", instances=[], rooms=[Room("r0", "room", 0)])
     for name, (v, f) in [("near", quad(-5, 0, -5, 5, -2.0)), ("back", quad(-5, 5, -5, 5, -3.0))]:
         make_instance(h, name=name, category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    v, f = quad(-5, 5, -5, 5, -2.9)
+    make_instance(h, name="board", category=29, label="board", room_id="r0", vertices=v, faces=f)
     cam = camera_looking_down_minus_z()
     layers = frontal_layers(h, cam, HouseTracer(h))
-    fine = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=1.0)).envelope
-    back = fine.instance == 1
-    kept = fine.vertices[fine.faces[back]]
-    # Pieces are kept whole or dropped: at most a one-pixel strip (0.06 m at 3 m) is lost.
-    area = triangle_areas(kept).sum()
-    assert 2.16 - 0.06 * 1.8 <= area <= 2.16 + 1e-9
+    visible = 1.16 * 1.74
+    fine = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=1.0)).objects
+    kept = fine.vertices[fine.faces]
+    # Pieces are kept whole or dropped: at most a one-pixel strip (0.058 m at 2.9 m) is lost.
+    assert visible - 0.058 * 1.74 <= fine.area <= visible + 1e-9
     assert kept[..., 0].min() >= -1e-9
-    # The near wall is wholly visible: 0.8 (left half of 1.6) × 1.2 m at depth 2.
-    assert triangle_areas(fine.vertices[fine.faces[~back]]).sum() == pytest.approx(0.8 * 1.2)
-    # Dropping whole faces (the reference rule) loses more of the back wall.
-    coarse = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=None)).envelope
-    coarse_back = triangle_areas(coarse.vertices[coarse.faces[coarse.instance == 1]]).sum()
-    assert coarse_back < area - 0.1
+    # Dropping whole faces (the reference rule) loses more of the board.
+    coarse = view_mesh(h, cam, layers, ViewMeshConfig(max_edge_pixels=None)).objects
+    assert coarse.area < fine.area - 0.1
+
+
+# ---------------------------------------- the envelope: the D5 surface, not its polygons
+
+
+def rectangle(axis, value, lo, hi):
+    """Two triangles of the axis-aligned rectangle ``axis = value``, the other two
+    coordinates from ``lo`` to ``hi`` (2,)."""
+    others = [k for k in range(3) if k != axis]
+    corners = np.zeros((4, 3))
+    corners[:, axis] = value
+    corners[:, others[0]] = [lo[0], hi[0], hi[0], lo[0]]
+    corners[:, others[1]] = [lo[1], lo[1], hi[1], hi[1]]
+    return corners[[[0, 1, 2], [0, 2, 3]]]
+
+
+def pixel_centre_frustum(camera, upscale):
+    """The frustum planes through the outermost pixel centres of ``camera`` resized by
+    ``upscale``: what the triangulated D5 grid spans."""
+    from sceneforge.cameras import Camera
+
+    w, h = round(camera.width * upscale), round(camera.height * upscale)
+    fine = camera.resized(w, h)
+    K = fine.K.copy()
+    K[:2, 2] -= 0.5
+    return frustum_planes(Camera(K, fine.cam_to_world, w - 1, h - 1))
+
+
+def test_a_box_room_has_its_inner_faces_in_the_frustum_as_envelope_ground_truth(small_house):
+    # small_house: a 4 × 3 × 4 m room of 0.1 m thick boxes, a table, a chair and a cup.
+    cam = look_at_camera((0.6, 1.4, 1.3), (-0.3, -0.35, -1.0), width=160, height=120)
+    mesh = view_mesh(small_house, cam, frontal_layers(small_house, cam, HouseTracer(small_house)))
+    inner = np.concatenate([rectangle(1, 0.0, (-2, -2), (2, 2)), rectangle(1, 3.0, (-2, -2), (2, 2)),
+                            *(rectangle(0, x, (0, -2), (3, 2)) for x in (-2.0, 2.0)),
+                            *(rectangle(2, z, (-2, 0), (2, 3)) for z in (-2.0, 2.0))])
+    seen, _ = clip_triangles(inner, pixel_centre_frustum(cam, 1.5))
+    # D5 looks through the furniture: every inner face in the frustum, and nothing else.
+    assert mesh.envelope.area == pytest.approx(triangle_areas(seen).sum(), rel=0.01)
+    v = mesh.envelope.vertices
+    assert (v[:, 1] >= -1e-9).all() and (v[:, 1] <= 3 + 1e-9).all()
+    assert (np.abs(v[:, [0, 2]]) <= 2 + 1e-9).all()
+    assert {"table", "chair"} <= {small_house.instances[i].name for i in mesh.objects.instance}
+
+
+def partition_house():
+    """Room A (x in [-2, 2], z in [-3, 1], 2.8 m high) as real houses build it: its wall
+    at z = -3 is a 5 cm partition, the next room's wall skin is 6 cm behind the partition's
+    face (SUNCG's per-room walls), and the floor is a 5 cm slab with an underside."""
+    h = House(id="partition", instances=[], rooms=[Room("a", "room", 0), Room("b", "room", 0)])
+    box_instance(h, "partition", 1, (4.0, 2.8, 0.05), (0.0, 1.4, -3.025), room_id="a", label="wall")
+    box_instance(h, "next_wall", 1, (4.0, 2.8, 0.05), (0.0, 1.4, -3.085), room_id="b", label="wall")
+    box_instance(h, "floor", 2, (4.2, 0.05, 4.2), (0.0, -0.025, -1.0), room_id="a", label="floor")
+    box_instance(h, "ceiling", 22, (4.2, 0.05, 4.2), (0.0, 2.825, -1.0), room_id="a", label="ceiling")
+    for x in (-2.025, 2.025):
+        box_instance(h, f"wall_{x}", 1, (0.05, 2.8, 4.0), (x, 1.4, -1.0), room_id="a", label="wall")
+    box_instance(h, "sofa", 6, (1.6, 0.8, 0.8), (0.0, 0.4, -2.5), room_id="a", label="sofa")
+    return h
+
+
+def test_a_thin_partition_gives_only_its_facing_side_and_nothing_behind_it():
+    house = partition_house()
+    tracer = HouseTracer(house)
+    cam = look_at_camera((0.3, 1.5, 0.5), (-0.1, -0.3, -1.0), width=160, height=120)
+    layers = frontal_layers(house, cam, tracer)
+    mesh = view_mesh(house, cam, layers, tracer=tracer)
+    env = mesh.envelope
+    v = env.vertices
+    # Nothing behind the partition's face (its back face, the next room's skin) and nothing
+    # below the floor (the slab underside): every vertex is on the room's inner faces.
+    assert v[:, 2].min() >= -3.0 - 1e-9 and v[:, 1].min() >= -1e-9
+    names = [house.instances[i].name for i in env.instance]
+    assert set(names) <= {"partition", "floor", "ceiling", "wall_-2.025", "wall_2.025"}
+    # The partition contributes its facing side, in the frustum, behind the sofa too.
+    facing, _ = clip_triangles(rectangle(2, -3.0, (-2, 0), (2, 2.8)), pixel_centre_frustum(cam, 1.5))
+    on_partition = (np.abs(v[env.faces][..., 2] + 3.0) < 1e-9).all(axis=1)
+    area = triangle_areas(v[env.faces[on_partition]]).sum()
+    assert area == pytest.approx(triangle_areas(facing).sum(), rel=0.01)
+    assert set(np.asarray(names)[on_partition]) == {"partition"}
+    # The envelope polygons would have kept those hidden faces: they lie within the 0.1 m
+    # margin behind D5 that the object rule allows.
+    envelope_ids = [k for k, inst in enumerate(house.instances) if inst.envelope]
+    d5 = np.asarray(layers.depth[4])
+    (polygons,) = _clipped_meshes(house, [envelope_ids], cam, frustum_planes(cam), d5,
+                                  _envelope_limit(d5, tol.behind_envelope), ViewMeshConfig())
+    tris = polygons.vertices[polygons.faces]
+    hidden = (tris[..., 2] < -3.0 - 1e-6).all(axis=1) | (tris[..., 1] < -1e-6).all(axis=1)
+    assert triangle_areas(tris[hidden]).sum() > 0.5 * area
+
+
+def test_every_envelope_vertex_is_the_first_envelope_hit_on_its_ray():
+    # On the bundled toy houses (0.1 m partitions, 5 cm floor slabs): no back face, no
+    # skin behind a partition, no slab underside, only what D5 sees.
+    for house, cam, layers in toy_house_views():
+        tracer = HouseTracer(house)
+        env = view_mesh(house, cam, layers, tracer=tracer).envelope
+        assert len(env.faces) > 0
+        centre = cam.cam_to_world[:3, 3]
+        to = env.vertices - centre
+        dist = np.linalg.norm(to, axis=1)
+        first = tracer.first_hit(np.broadcast_to(centre, to.shape), to / dist[:, None],
+                                 instances=tracer.triangles.envelope)
+        np.testing.assert_allclose(first.t, dist, rtol=1e-6, atol=1e-6)
+        ids = np.flatnonzero([i.envelope for i in house.instances])
+        assert set(env.instance.tolist()) <= set(ids.tolist())
+
+
+def test_envelope_surface_leaves_out_rays_that_leave_the_house():
+    # Only the wall of wall_house's left half: the right half of the view sees nothing.
+    house = House(id="half", instances=[], rooms=[Room("r0", "room", 0)])
+    v, f = quad(-5, 0, -5, 5, -3.0)
+    make_instance(house, name="wall", category=1, label="wall", room_id="r0", vertices=v, faces=f)
+    cam = camera_looking_down_minus_z()
+    env = envelope_surface(HouseTracer(house), cam, ViewMeshConfig(envelope_upscale=2.0))
+    # 80 × 60 pixels; the wall fills columns 0..39 (x < 0 at depth 3 is u < 40 of 80).
+    assert len(env.vertices) == 40 * 60 and env.vertices[:, 0].max() < 0
+    assert env.area == pytest.approx(1.2 * 39 / 40 * 1.8 * 59 / 60)
 
 
 def test_view_mesh_config_is_checked():
@@ -261,6 +421,10 @@ def test_view_mesh_config_is_checked():
         ViewMeshConfig(near=0.0)
     with pytest.raises(ValueError, match="max_edge_pixels"):
         ViewMeshConfig(max_edge_pixels=0.0)
+    with pytest.raises(ValueError, match="envelope_upscale"):
+        ViewMeshConfig(envelope_upscale=0.0)
+    with pytest.raises(ValueError, match="envelope_a"):
+        ViewMeshConfig(envelope_a=-1.0)
 
 
 # ------------------------------------------------ the fast paths against plain versions
@@ -372,7 +536,7 @@ def test_drop_behind_envelope_matches_the_plain_refinement_bit_for_bit(max_edge)
 
 
 def test_the_meshes_of_a_view_come_out_as_each_would_alone():
-    # Objects and envelope are clipped and refined in one batch.
+    # Several lists of instances are clipped and refined in one batch.
     house, cam, layers = half_occluded_view()
     planes, config = frustum_planes(cam), ViewMeshConfig(max_edge_pixels=1.0)
     d5 = np.asarray(layers.depth[4])

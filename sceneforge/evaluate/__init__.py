@@ -1,7 +1,8 @@
 """Evaluation of multi-layer depth reconstructions (SPEC §11).
 
 - :mod:`.depth_mesh`: depth layers and overhead height maps → world-space meshes
-  (2×2 block triangulation with the edge rule).
+  (2×2 block triangulation with the edge rule, the kernel in :mod:`sceneforge.depth_mesh`
+  that the ground-truth envelope is made with too), the edge factor presets.
 - :mod:`.surface`: uniform surface samples, point-to-mesh distance, precision and recall.
 - :mod:`.coverage`: unions of a view's layer meshes scored against its ground-truth
   mesh; the coverage table (paper Table 1) and the predictions table (paper §5).
@@ -30,6 +31,7 @@ from .coverage import (
     score_view,
 )
 from .depth_mesh import (
+    EDGE_FACTORS,
     Mesh,
     MeshingConfig,
     concatenate,
@@ -69,7 +71,7 @@ from .voxels import (
 )
 
 __all__ = [
-    "COVERAGE_VARIANTS", "GT_KINDS", "OVERHEAD", "PAPER_COVERAGE", "PAPER_PREDICTIONS", "PART_NAMES",
+    "COVERAGE_VARIANTS", "EDGE_FACTORS", "GT_KINDS", "OVERHEAD", "PAPER_COVERAGE", "PAPER_PREDICTIONS", "PART_NAMES",
     "PREDICTION_VARIANTS", "EvalView", "EvaluateConfig", "GroundTruthMesh", "Mesh", "MeshDistance",
     "MeshingConfig", "SurfaceConfig", "SurfaceReport", "Variant", "ViewScores", "ViewVoxelScore", "VoxelConfig",
     "VoxelReport", "VoxelScore", "concatenate", "coverage_views", "default_thresholds", "evaluate_views",

@@ -207,7 +207,8 @@ class SurfaceReport:
     def to_dict(self) -> dict:
         """JSON-ready summary: config, seed, per-variant table values and mean curves."""
         out = {"views": self.n_views, "seed": self.seed, "density": self.config.density,
-               "threshold": self.config.threshold, "a": self.meshing.a,
+               "threshold": self.config.threshold, "preset": self.meshing.preset,
+               "a": {part: self.meshing.edge_factor(part) for part in PART_NAMES},
                "min_height": self.meshing.min_height, "thresholds": list(self.config.thresholds),
                "variants": {}}
         for i, v in enumerate(self.variants):
@@ -227,6 +228,7 @@ class SurfaceReport:
         cm = f"{self.config.threshold * 100:g} cm"
         lines = [f"coverage: recall at {cm} of meshes from ground-truth layers, "
                  f"mean over {self.n_views} views",
+                 f"meshing: {self.meshing.describe()}",
                  f"{'layers':<18}{'recall':>8}{'paper':>8}{'objects':>10}{'precision':>11}",
                  f"{'':<18}{'all':>8}{'SUNCG':>8}{'recall':>10}{'all':>11}"]
         for i, v in enumerate(self.variants):
@@ -239,6 +241,7 @@ class SurfaceReport:
         p, r = self.table("objects")
         cm = f"{self.config.threshold * 100:g} cm"
         lines = [f"predictions: precision and recall at {cm} against objects, mean over {self.n_views} views",
+                 f"meshing: {self.meshing.describe()}",
                  f"{'layers':<18}{'precision':>10}{'recall':>8}{'paper P':>9}{'paper R':>9}"]
         for i, v in enumerate(self.variants):
             pp, pr = PAPER_PREDICTIONS.get(v.name, (None, None))

@@ -1,14 +1,12 @@
 """Depth layers → triangle meshes in world coordinates (SPEC §11, *(ref)*).
 
 Every pixel with a finite depth becomes a vertex: the point at that depth on the ray
-through the pixel centre. Each 2×2 block of pixels with at least three vertices gives
-triangles: with three, the one triangle they make; with four, two triangles split along
-the diagonal whose corners differ less in depth. A triangle is dropped when one of its
-edges spans a depth jump larger than ``a`` times the metric footprint of the nearer
-pixel (× √2 on a diagonal): the footprint at depth ``z`` is ``z / fx`` for a perspective
-camera and the pixel size for an orthographic one. With four valid corners the diagonal
-is chosen before the edge rule, so a block may keep one triangle, as in the reference
-(MVE's ``depthmap_triangulate``).
+through the pixel centre. The triangles are those of :func:`sceneforge.depth_mesh.grid_faces`
+(2×2 blocks and the edge rule), the kernel the ground-truth envelope surface is made with
+too: the edge rule compares a depth jump with ``a`` times the metric footprint of the
+nearer pixel, ``z / fx`` for a perspective camera and the pixel size for an orthographic
+one. ``a`` comes from a named preset (:data:`EDGE_FACTORS`): the paper's, or the one the
+reference evaluation used.
 
 Overhead height maps are triangulated in the orthographic overhead camera; pixels at or
 below ``min_height`` above the floor are left out, since the floor belongs to the
@@ -17,28 +15,61 @@ envelope that the overhead view does not predict (paper §5).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
+from ..conventions import ENVELOPE_LAYER, LAYER_NAMES
+from ..depth_mesh import compact, grid_faces, perspective_faces, perspective_points
 from ..frustum import triangle_areas
+
+#: The edge factor ``a`` of each preset: (D1–D4 and the overhead map, D5). ``paper``: the
+#: paper's text, a = 7 everywhere. ``reference``: what the reference's evaluation used,
+#: 10 for the object layers and 15 for the envelope (the overhead map, which shows objects,
+#: takes the object layers' factor).
+EDGE_FACTORS: dict[str, tuple[float, float]] = {"paper": (7.0, 7.0), "reference": (10.0, 15.0)}
+#: Name of the overhead part among a view's meshes (next to ``LAYER_NAMES``).
+OVERHEAD = "overhead"
 
 
 @dataclass(frozen=True)
 class MeshingConfig:
     """How depth maps are turned into meshes."""
 
-    #: edge rule: no edge across a depth jump larger than this × the pixel footprint
-    a: float = 7.0
+    #: edge rule factor preset: "paper" (a = 7) or "reference" (a = 10 for D1–D4 and the overhead map, 15 for D5)
+    preset: Literal["paper", "reference"] = "paper"
+    #: edge rule: no edge across a depth jump larger than this × the pixel footprint, for every layer; None = the preset's
+    a: float | None = None
     #: overhead pixels at or below this height above the floor (m) are not meshed
     min_height: float = 0.05
 
     def __post_init__(self):
-        if not self.a > 0:
-            raise ValueError(f"a must be > 0, got {self.a}")
+        if self.preset not in EDGE_FACTORS:
+            raise ValueError(f"preset must be one of {', '.join(EDGE_FACTORS)}, got {self.preset!r}")
+        if self.a is not None and not self.a > 0:
+            raise ValueError(f"a must be None or > 0, got {self.a}")
         if not self.min_height >= 0:
             raise ValueError(f"min_height must be >= 0 m, got {self.min_height}")
+
+    def edge_factor(self, part: str) -> float:
+        """The edge factor of ``part`` (a layer name of ``LAYER_NAMES`` or ``"overhead"``)."""
+        if part not in (*LAYER_NAMES, OVERHEAD):
+            raise ValueError(f"no part {part!r}: expected one of {', '.join(LAYER_NAMES)} or {OVERHEAD}")
+        if self.a is not None:
+            return float(self.a)
+        objects, envelope = EDGE_FACTORS[self.preset]
+        return envelope if part == LAYER_NAMES[ENVELOPE_LAYER] else objects
+
+    def describe(self) -> str:
+        """Which edge factors are used, in words (``evaluate`` prints it)."""
+        if self.a is not None:
+            return f"edge factor a = {self.a:g} for every layer (preset {self.preset} overridden)"
+        objects, envelope = EDGE_FACTORS[self.preset]
+        if objects == envelope:
+            return f"edge factor preset {self.preset}: a = {objects:g} for every layer"
+        return (f"edge factor preset {self.preset}: a = {objects:g} for D1-D4 and the overhead map, "
+                f"{envelope:g} for D5")
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,66 +119,16 @@ def concatenate(meshes) -> Mesh:
                 np.concatenate([m.faces + o for m, o in zip(meshes, offsets)]))
 
 
-# Corners of a 2×2 block: 0 = (row, col), 1 = (row, col + 1), 2 = (row + 1, col),
-# 3 = (row + 1, col + 1). The reference's four triangles, all wound the same way (their
-# normal faces the camera), and their edges as corner pairs.
-_TRIANGLES = np.array([[0, 2, 1], [0, 3, 1], [0, 2, 3], [1, 2, 3]])
-_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
-_DIAGONALS = frozenset({(0, 3), (1, 2)})
-
-
 def grid_mesh(points: np.ndarray, depth: np.ndarray, footprint: np.ndarray, a: float) -> Mesh:
-    """Triangulate an image of points with the 2×2 block rule and the edge rule.
+    """Triangulate an image of points with the 2×2 block rule and the edge rule
+    (:func:`sceneforge.depth_mesh.grid_faces`); only the vertices some face uses are kept.
 
     points    : (H, W, 3) float  the world point of every pixel
     depth     : (H, W) float     the depth the edge rule compares; NaN = no vertex
     footprint : (H, W) float     metric size of each pixel at its depth, metres
     a         : float            edge rule factor
     """
-    depth = np.asarray(depth, dtype=np.float64)
-    h, w = depth.shape
-    if h < 2 or w < 2:
-        return Mesh.empty()
-    valid = np.isfinite(depth)
-    corner_slices = ((slice(0, -1), slice(0, -1)), (slice(0, -1), slice(1, None)),
-                     (slice(1, None), slice(0, -1)), (slice(1, None), slice(1, None)))
-    d = np.stack([depth[s] for s in corner_slices])          # (4, H-1, W-1)
-    ok = np.stack([valid[s] for s in corner_slices])
-    fp = np.stack([np.asarray(footprint, dtype=np.float64)[s] for s in corner_slices])
-    mask = (ok * np.array([1, 2, 4, 8])[:, None, None]).sum(axis=0)
-
-    # The edge rule, per corner pair: the jump against the nearer corner's footprint.
-    with np.errstate(invalid="ignore"):
-        jump = {}
-        for i, j in _PAIRS:
-            near = np.where(d[i] <= d[j], fp[i], fp[j])
-            limit = a * near * (math.sqrt(2.0) if (i, j) in _DIAGONALS else 1.0)
-            jump[i, j] = np.abs(d[i] - d[j]) > limit
-        along_03 = np.abs(d[0] - d[3]) < np.abs(d[1] - d[2])
-    full = mask == 15
-    emit = (
-        (mask == 7) | (full & ~along_03),   # 0 2 1
-        (mask == 11) | (full & along_03),   # 0 3 1
-        (mask == 13) | (full & along_03),   # 0 2 3
-        (mask == 14) | (full & ~along_03),  # 1 2 3
-    )
-    index = np.full((h, w), -1, dtype=np.int64)
-    index[valid] = np.arange(int(valid.sum()))
-    corner_index = np.stack([index[s] for s in corner_slices]).reshape(4, -1)
-    faces = []
-    for tri, keep in zip(_TRIANGLES, emit):
-        for k in range(3):
-            i, j = sorted((tri[k], tri[(k + 1) % 3]))
-            keep = keep & ~jump[i, j]
-        blocks = np.flatnonzero(keep)
-        faces.append(corner_index[tri][:, blocks].T)
-    faces = np.concatenate(faces)
-    # Keep only vertices some face uses.
-    used = np.zeros(int(valid.sum()), dtype=bool)
-    used[faces.ravel()] = True
-    renumber = np.cumsum(used) - 1
-    vertices = np.asarray(points, dtype=np.float64).reshape(h, w, 3)[valid][used]
-    return Mesh(vertices, renumber[faces])
+    return Mesh(*compact(points, grid_faces(depth, footprint, a)))
 
 
 def perspective_mesh(depth: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, a: float = 7.0) -> Mesh:
@@ -157,14 +138,7 @@ def perspective_mesh(depth: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray,
     K            : (3, 3) float  intrinsics, pixel centres at integer + 0.5
     cam_to_world : (4, 4) float  OpenCV axes
     """
-    depth = np.asarray(depth, dtype=np.float64)
-    K = np.asarray(K, dtype=np.float64)
-    pose = np.asarray(cam_to_world, dtype=np.float64)
-    h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # z = 1
-    points = (rays * depth[..., None]) @ pose[:3, :3].T + pose[:3, 3]
-    return grid_mesh(points, depth, depth / K[0, 0], a)
+    return Mesh(*compact(perspective_points(depth, K, cam_to_world), perspective_faces(depth, K, a)))
 
 
 def orthographic_mesh(
@@ -208,4 +182,4 @@ def height_map_mesh(
     with np.errstate(invalid="ignore"):
         floor = ~(height > height.dtype.type(config.min_height))
     depth = np.where(floor, np.nan, camera_height - height.astype(np.float64))
-    return orthographic_mesh(depth, cam_to_world, half_extent, config.a)
+    return orthographic_mesh(depth, cam_to_world, half_extent, config.edge_factor(OVERHEAD))

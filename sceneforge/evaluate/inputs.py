@@ -14,13 +14,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..conventions import LAYER_NAMES
-from .depth_mesh import Mesh, MeshingConfig, height_map_mesh, perspective_mesh
+from .depth_mesh import OVERHEAD, Mesh, MeshingConfig, height_map_mesh, perspective_mesh
 
 if TYPE_CHECKING:
     from ..view import ViewGroundTruth
 
-#: Name of the overhead part among a view's meshes (next to ``LAYER_NAMES``).
-OVERHEAD = "overhead"
 #: Every part a view's reconstruction is made of, in order.
 PART_NAMES: tuple[str, ...] = (*LAYER_NAMES, OVERHEAD)
 
@@ -85,7 +83,7 @@ class EvalView:
     def meshes(self, config: MeshingConfig | None = None) -> dict[str, Mesh]:
         """World-space mesh of every part: D1..D5 and the overhead height map (:data:`PART_NAMES`)."""
         config = config or MeshingConfig()
-        parts = {name: perspective_mesh(d, self.K, self.cam_to_world, config.a)
+        parts = {name: perspective_mesh(d, self.K, self.cam_to_world, config.edge_factor(name))
                  for name, d in zip(LAYER_NAMES, self.depth)}
         parts[OVERHEAD] = height_map_mesh(self.overhead_height, self.overhead_cam_to_world,
                                           self.overhead_extent, float(self.overhead_params[2]), config)

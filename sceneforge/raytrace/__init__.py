@@ -441,12 +441,17 @@ class HouseTracer:
                               (the same hits as tracing all and dropping the others)
         """
         rays = Rays.check(origins, directions)
-        if instances is not None:
-            instances = np.asarray(instances, dtype=bool)
-            if instances.shape != (self.triangles.n_instances,):
-                raise ValueError(f"instances must be ({self.triangles.n_instances},) bool, got {instances.shape}")
-        ray, face = self.backend.intersect_all(rays, instances)
+        ray, face = self.backend.intersect_all(rays, self._instance_mask(instances))
         return _collect_hits(self.triangles, rays, ray, face)
+
+    def _instance_mask(self, instances) -> np.ndarray | None:
+        """``instances`` checked to be (n_instances,) bool, or None."""
+        if instances is None:
+            return None
+        instances = np.asarray(instances, dtype=bool)
+        if instances.shape != (self.triangles.n_instances,):
+            raise ValueError(f"instances must be ({self.triangles.n_instances},) bool, got {instances.shape}")
+        return instances
 
     def frontal_query(
         self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0
@@ -506,10 +511,12 @@ class HouseTracer:
             closing = self._first_hit(rays, face)
         return closing
 
-    def first_hit(self, origins, directions) -> FirstHit:
-        """The nearest hit of each ray (origins, directions: (n, 3) float, unit directions)."""
+    def first_hit(self, origins, directions, instances=None) -> FirstHit:
+        """The nearest hit of each ray (origins, directions: (n, 3) float, unit directions),
+        among ``instances`` ((n_instances,) bool, optional) only: with ``triangles.envelope``,
+        the hits that make D5."""
         rays = Rays.check(origins, directions)
-        return self._first_hit(rays, self.backend.intersect_first(rays))
+        return self._first_hit(rays, self.backend.intersect_first(rays, self._instance_mask(instances)))
 
     def _first_hit(self, rays: Rays, face: np.ndarray) -> FirstHit:
         """:class:`FirstHit` of the engine's nearest faces ``face`` (n,) (-1: none)."""

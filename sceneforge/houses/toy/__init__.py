@@ -3,10 +3,12 @@
 A toy house is a grid of 2–4 rooms (living room, bedroom and some of kitchen, bathroom,
 office, dining room) on one level with ``floor_y = 0``:
 
-- every room owns its envelope: a floor slab, a ceiling slab and four wall slabs, all
-  closed boxes. A wall between two rooms is two 0.1 m slabs, one per room (like SUNCG's
-  per-room wall meshes); an exterior wall is one 0.2 m slab. Floors and ceilings cover
-  the walls' footprint too, so no ray can leave through a seam;
+- every room owns its envelope: a 5 cm floor slab, a ceiling slab, its 0.2 m exterior
+  walls and the partitions on its north and east sides, all closed boxes. A wall between
+  two rooms is one 0.1 m partition shared by both, each of its faces a wall of one room;
+  a floor slab has an underside. Real houses are built so, and their ground truth must
+  leave out what no camera sees (SPEC §5). Floors and ceilings cover the walls' footprint
+  too, so no ray can leave through a seam;
 - interior door openings join the rooms into one connected plan; their door leaves stand
   open against the wall. The front door is an exterior opening closed by its leaf, which
   overlaps the opening by 1 cm on the sides and top. Windows are exterior openings with a

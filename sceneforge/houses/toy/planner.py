@@ -15,9 +15,12 @@ from . import furniture
 from .furniture import Piece, moved_group
 from .primitives import EPS, Frame, Part, box, cm, overlaps
 
-#: half the thickness of a wall between two rooms; exterior walls are twice as thick
-HALF_WALL = 0.1
-FLOOR_THICKNESS = 0.1
+#: thickness of the one partition wall between two rooms (both its faces are walls of a room)
+PARTITION = 0.1
+#: thickness of an exterior wall
+EXTERIOR_WALL = 0.2
+#: a floor is a slab this thick, closed, so that it has an underside as real floors do
+FLOOR_THICKNESS = 0.05
 CEILING_THICKNESS = 0.1
 _TRIES = 80  # random placements tried before a piece is given up
 ROOM_TYPES = ("living_room", "bedroom", "kitchen", "bathroom", "office", "dining_room")
@@ -78,12 +81,12 @@ class Plan:
     @property
     def lo(self):
         x0, _, z0, _ = self.cell
-        return (x0 + HALF_WALL, 0.0, z0 + HALF_WALL)
+        return (x0 + _half_wall(self, "west"), 0.0, z0 + _half_wall(self, "south"))
 
     @property
     def hi(self):
         _, x1, _, z1 = self.cell
-        return (x1 - HALF_WALL, self.height, z1 - HALF_WALL)
+        return (x1 - _half_wall(self, "east"), self.height, z1 - _half_wall(self, "north"))
 
     def along(self, side: str) -> tuple[float, float]:
         """Range of the wall's free face along the wall (world X for south/north, Z else)."""
@@ -327,23 +330,41 @@ def _wall_part(side: str, across: tuple[float, float], along: tuple[float, float
     return box(across[0], ys[0], along[0], across[1], ys[1], along[1])
 
 
+def _half_wall(room: Plan, side: str) -> float:
+    """Half the thickness of the wall on ``side`` of ``room``: walls are centred on the grid."""
+    return (EXTERIOR_WALL if room.exterior[side] else PARTITION) / 2
+
+
+#: the interior sides whose partition a room builds: each partition is one wall shared by
+#: the rooms on its two sides, built once, by the room west or south of it
+_OWNED_PARTITIONS = ("north", "east")
+
+
+def _outer_edge(room: Plan, side: str) -> float:
+    """Where the room's share of the house ends on ``side``: the outer face of an exterior
+    wall, the grid line in a partition (the neighbour's floor and walls go on from there)."""
+    grid = _grid_line(room, side)
+    if not room.exterior[side]:
+        return grid
+    return grid + (_half_wall(room, side) if side in ("north", "east") else -_half_wall(room, side))
+
+
 def _wall_span(room: Plan, side: str) -> tuple[tuple[float, float], tuple[float, float]]:
-    """(across, along) ranges of a room's wall slab: exterior slabs are twice as thick and the
-    south/north slabs also cover the corners."""
-    x0, x1, z0, z1 = room.cell
-    t, ext = HALF_WALL, room.exterior
-    ox = (x0 - t if ext["west"] else x0, x1 + t if ext["east"] else x1)
-    across = {
-        "south": (z0 - t if ext["south"] else z0, z0 + t), "north": (z1 - t, z1 + t if ext["north"] else z1),
-        "west": (x0 - t if ext["west"] else x0, x0 + t), "east": (x1 - t, x1 + t if ext["east"] else x1),
-    }[side]
-    return across, (ox if side in ("south", "north") else room.along(side))
+    """(across, along) ranges of the wall on ``side`` of a room, centred on the grid line
+    (0.2 m exterior walls, 0.1 m partitions). The south/north walls also cover the corners,
+    the west/east walls run between them."""
+    grid, half = _grid_line(room, side), _half_wall(room, side)
+    along = (_outer_edge(room, "west"), _outer_edge(room, "east")) if side in ("south", "north") else room.along(side)
+    return (grid - half, grid + half), along
 
 
 def _walls(room: Plan) -> list[Part]:
-    """The room's four wall slabs as closed boxes, cut around the openings."""
+    """The room's exterior walls and the partitions it owns (:data:`_OWNED_PARTITIONS`) as
+    closed boxes, cut around the openings."""
     parts = []
     for side in _SIDE_ORDER:
+        if not room.exterior[side] and side not in _OWNED_PARTITIONS:
+            continue
         across, (a0, a1) = _wall_span(room, side)
         cursor = a0
         for h0, h1, y0, y1 in sorted(room.holes.get(side, [])):
@@ -357,17 +378,16 @@ def _walls(room: Plan) -> list[Part]:
 
 
 def _slabs(room: Plan) -> tuple[Part, Part]:
-    """Floor and ceiling slabs covering the room and its walls' footprint."""
-    (x0, _), _ = _wall_span(room, "west")
-    (_, x1), _ = _wall_span(room, "east")
-    (z0, _), _ = _wall_span(room, "south")
-    (_, z1), _ = _wall_span(room, "north")
+    """Floor and ceiling slabs under and over the room and its share of the walls."""
+    x0, x1 = _outer_edge(room, "west"), _outer_edge(room, "east")
+    z0, z1 = _outer_edge(room, "south"), _outer_edge(room, "north")
     return (box(x0, -FLOOR_THICKNESS, z0, x1, 0.0, z1),
             box(x0, room.height, z0, x1, room.height + CEILING_THICKNESS, z1))
 
 
 def _opening(kind: str, rooms: list[Plan], side: str, grid: float, along, ys) -> Opening:
-    part = _wall_part(side, (grid - HALF_WALL, grid + HALF_WALL), along, ys)
+    half = _half_wall(rooms[0], side)
+    part = _wall_part(side, (grid - half, grid + half), along, ys)
     return Opening(kind, tuple(r.id for r in rooms), 0 if side in ("west", "east") else 2, part.lo, part.hi)
 
 
