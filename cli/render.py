@@ -8,8 +8,10 @@ import click
 from click.core import ParameterSource
 
 from sceneforge.config import DatasetConfig
+from sceneforge.errors import EXIT_FAILURES
 
 from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
+from .output import plural
 from .progress import RichProgress, progress_bar
 
 #: the options of ``render`` and the config fields they set (help and defaults: the fields')
@@ -36,7 +38,11 @@ RENDER_OPTIONS = (
               help="Run on a Dask cluster: its scheduler address (tcp://host:8786), or `local` to start "
                    "a LocalCluster of --workers processes.")
 @click.option("--overwrite", is_flag=True, help="Delete the store at OUT first and start over.")
-def render(houses, out, config, workers, scheduler, overwrite):
+@click.option("--update", is_flag=True,
+              help="When houses changed, were added or removed since OUT was rendered (their files are "
+                   "fingerprinted), redo exactly those; without it such a run is refused, naming them.")
+@click.option("--retry-failed", is_flag=True, help="Render the houses that failed again.")
+def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed):
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
@@ -44,8 +50,9 @@ def render(houses, out, config, workers, scheduler, overwrite):
     anything `sceneforge houses inspect` takes, e.g. `bundled:toy`.
 
     Run the same command again after an interruption to resume; the result is identical
-    to an uninterrupted run. Houses that fail are recorded in the store's failure log and
-    the others complete; the exit code is then 1.
+    to an uninterrupted run. One run writes a store at a time (a second is refused). Houses
+    that fail are recorded in the store's failure log and the others complete; the exit
+    code is then 3 (1: an error, nothing lost; 2: a bad option).
     """
     from rich.console import Console
 
@@ -58,21 +65,28 @@ def render(houses, out, config, workers, scheduler, overwrite):
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:
         summary = render_dataset(houses, out, config, workers=workers, scheduler=scheduler, overwrite=overwrite,
-                                 progress=RichProgress(bar))
+                                 update=update, retry_failed=retry_failed, progress=RichProgress(bar))
+    if summary.changes:
+        console.print(f"updated: {summary.changes.describe()}")
+    if summary.retried:
+        console.print(f"retried: {', '.join(summary.retried)}")
     if summary.already_complete:
-        console.print(f"{summary.path}: already complete ({summary.views} views); nothing to do")
+        console.print(f"{summary.path}: already complete ({plural(summary.views, 'view')}); nothing to do")
     else:
-        rate = summary.views / summary.seconds if summary.seconds > 0 else 0.0
-        console.print(f"{summary.path}: {summary.views} views of {summary.houses} houses in {summary.shards} shards "
-                      f"({summary.shards_run} written now) in {summary.seconds:.1f} s ({rate:.1f} views/s)")
+        # the progress bar's rate: views rendered now over the rendering step's wall time
+        rate = summary.views_rendered / summary.render_seconds if summary.render_seconds > 0 else 0.0
+        console.print(f"{summary.path}: {plural(summary.views, 'view')} of {plural(summary.houses, 'house')} in "
+                      f"{plural(summary.shards, 'shard')} ({summary.shards_run} written now) in "
+                      f"{summary.seconds:.1f} s; rendering {rate:.1f} views/s")
     for f in summary.failures:
         where = f"view {f['view']}" if f.get("view") is not None else f["stage"]
         reason = f["reason"].removeprefix(f"house {f['house']}: ")  # load errors name the house too
         console.print(f"[red]failed: house {f['house']} ({where}): {reason}[/red]")
     if summary.failed_houses:
-        console.print(f"[red]{len(summary.failed_houses)} houses failed[/red] (failure log: the store's "
-                      "`failures` attribute)")
-        raise SystemExit(1)
+        retry = "" if retry_failed else "; --retry-failed renders them again"
+        console.print(f"[red]{plural(len(summary.failed_houses), 'house')} failed[/red] (failure log: the store's "
+                      f"`failures` attribute{retry})")
+        raise SystemExit(EXIT_FAILURES)
 
 
 @click.command()

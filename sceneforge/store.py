@@ -25,6 +25,11 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
+import os
+import socket
+import sys
+import time
 import uuid
 import warnings
 from dataclasses import dataclass
@@ -36,7 +41,9 @@ import numpy as np
 
 from . import conventions
 from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
-from .errors import MissingDependencyError, SceneforgeError
+from .errors import MissingDependencyError, SceneforgeError, StoreLockedError
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     import zarr
@@ -51,6 +58,9 @@ MESH_KINDS: tuple[str, ...] = ("objects", "envelope")
 #: ragged mesh arrays: rows per chunk, and chunks per shard
 MESH_CHUNK_ROWS = 1 << 16
 MESH_SHARD_CHUNKS = 16
+#: the manifest of a complete store: ``{"files": {key: SHA-256 or null}}`` of every shard
+#: file (null: zarr wrote no file, every value is the fill value), written by ``finalize``
+MANIFEST = "manifest.json"
 
 
 @dataclass(frozen=True)
@@ -327,6 +337,12 @@ class StoreWriter:
     e.g. the render pipeline's staging folder): ``put`` is atomic (a temporary file renamed
     into place), so readers see all of a file or nothing.
 
+    One run writes a store at a time: ``with StoreWriter(url) as writer:`` takes the store's
+    lock (:class:`StoreLock`) for the block and releases it on any exit, exceptions and
+    Ctrl-C included; a second run is refused with :class:`StoreLockedError` naming the
+    holder. The writers of shard tasks in worker processes write under their run's lock
+    and are not entered.
+
     url             : a local path or an fsspec URL (``memory://...``, ``s3://...``)
     storage_options : passed to fsspec and zarr
     """
@@ -347,9 +363,22 @@ class StoreWriter:
         self.zarr_url = self.root if self.local else self.url
         self._group = None
         self._arrays: dict[str, "zarr.Array"] = {}
+        self._lock: StoreLock | None = None
+        #: SHA-256 (hex, None for no file) of every shard file written through this writer
+        self.files: dict[str, str | None] = {}
 
     def __repr__(self) -> str:
         return f"StoreWriter({self.url!r})"
+
+    def __enter__(self) -> "StoreWriter":
+        self._lock = StoreLock(self)
+        self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
 
     # ------------------------------------------------------------------------ the arrays
 
@@ -377,21 +406,51 @@ class StoreWriter:
             self.rm(key)
         start = shard * next(iter(arrays.values())).shards[0]
         write_shard(arrays, start, views)
+        self.files.update({key: self.sha256(key) for key in keys})
         return keys
+
+    def resize(self, config: "DatasetConfig", n_views: int) -> None:
+        """Give every per-view array ``n_views`` views, keeping the shards inside (a run
+        that updates some houses of a store rewrites the shards whose views moved)."""
+        sizes = sizes_of(config, n_views)
+        for spec in array_specs(config, per_view=True):
+            self._array(spec.name).resize(spec.shape(sizes))
 
     def write_meshes(self, config: "DatasetConfig", counts: np.ndarray, parts: Iterable[dict[str, np.ndarray]]) -> None:
         """(Re)create and fill the ragged mesh arrays (see :func:`write_meshes`)."""
         write_meshes(self._group_rw(), config, counts, parts)
 
     def finalize(self, config: "DatasetConfig", houses_source: str, n_views: int, *, houses: list[dict],
-                 failures: list[dict], **extra) -> None:
+                 failures: list[dict], files: dict[str, str | None] | None = None, **extra) -> None:
         """Mark the store complete: :func:`base_attrs` with ``complete: true``, the houses'
-        provenance, the failure log and ``extra`` attributes (e.g. ``prediction``); then
-        remove the temporary files of writes cut short."""
+        provenance, the failure log and ``extra`` attributes (e.g. ``prediction``), after
+        writing the manifest (:data:`MANIFEST`): the SHA-256 of every shard file, as written
+        (``files``: those written by other processes, e.g. the render pipeline's workers;
+        with those written through this writer and the mesh arrays' files), so that
+        :func:`validate_store` finds a file damaged, missing or left over later. Then remove
+        the temporary files of writes cut short."""
+        manifest = {**self.files, **(files or {})}
+        for spec in array_specs(config, per_view=False):
+            for key in self._chunk_files(spec.name):
+                manifest[key] = self.sha256(key)
+        data = json.dumps({"files": dict(sorted(manifest.items()))}, indent=0).encode()
+        self.put(MANIFEST, data)
         attrs = base_attrs(config, houses_source, n_views)
-        attrs.update(complete=True, houses=houses, failures=failures, **extra)
+        attrs.update(complete=True, houses=houses, failures=failures, **extra,
+                     manifest={"file": MANIFEST, "files": len(manifest), "sha256": hashlib.sha256(data).hexdigest()})
         self._group_rw().attrs.put(attrs)
         self.remove_partials()
+
+    def _chunk_files(self, name: str) -> list[str]:
+        """Keys of the chunk (or shard) files array ``name`` has now."""
+        prefix = self.path(f"{name}/c")
+        if not self.fs.exists(prefix):
+            return []
+        return sorted(p[len(self.root) + 1:] for p in self.fs.find(prefix))
+
+    def mark_incomplete(self) -> None:
+        """Set ``complete`` false (a run starts changing a complete store)."""
+        self._group_rw().attrs["complete"] = False
 
     def attrs(self) -> dict:
         """The group attributes of the store there now."""
@@ -476,6 +535,131 @@ class StoreWriter:
             for path in self.fs.find(self.root):
                 if path.endswith(".partial"):
                     self.fs.rm(path)
+
+
+class StoreLock:
+    """The lock of a store: a file beside it (``OUT.zarr.lock``) naming the process that
+    writes it (pid, host, process start time, command line).
+
+    A lock whose process is gone (same host, and no process with that pid and start time:
+    killed with SIGKILL, or the machine rebooted) is taken over with a warning on the
+    ``sceneforge.store`` logger. On a local filesystem the lock file is created atomically
+    (a hard link that fails when the file exists); on other fsspec filesystems (object
+    stores) it is checked, then written, which leaves a short window for two runs started
+    at the same moment.
+    """
+
+    def __init__(self, writer: "StoreWriter"):
+        self.writer = writer
+        self.path = f"{writer.root}.lock"
+        self.me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid()),
+                   "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+                   "command": " ".join([os.path.basename(sys.argv[0]), *sys.argv[1:]])}
+
+    def acquire(self) -> None:
+        """Take the lock; raises :class:`StoreLockedError` while a live process holds it."""
+        data = json.dumps(self.me).encode()
+        for _ in range(5):
+            if self._create(data):
+                return
+            holder = self._read()
+            if holder is None:  # being written right now, or torn by a crash while written
+                time.sleep(0.2)
+                holder = self._read()
+            if holder is not None and _alive(holder):
+                elsewhere = "" if holder.get("host") == self.me["host"] else f"; if that run is gone, delete {self.path}"
+                raise StoreLockedError(
+                    f"{self.writer.url}: another run is writing this store ({_describe(holder)}); wait for it to "
+                    f"end, or write elsewhere{elsewhere}")
+            if self._take_over(holder):
+                log.warning("%s: took over the lock of a run that is no longer running (%s)", self.writer.url,
+                            "a torn lock file" if holder is None else _describe(holder))
+        raise StoreLockedError(f"{self.writer.url}: cannot take the lock {self.path}: other runs keep taking it")
+
+    def release(self) -> None:
+        """Remove the lock file, if it is still this process's."""
+        holder = self._read()
+        if holder is not None and holder.get("pid") == self.me["pid"] and holder.get("host") == self.me["host"]:
+            with contextlib.suppress(FileNotFoundError):
+                self.writer.fs.rm(self.path)
+
+    def _create(self, data: bytes) -> bool:
+        fs = self.writer.fs
+        fs.makedirs(self.path.rsplit("/", 1)[0] or "/", exist_ok=True)
+        if not self.writer.local:
+            if fs.exists(self.path):
+                return False
+            fs.pipe_file(self.path, data)
+            return True
+        tmp = f"{self.path}.{uuid.uuid4().hex}.partial"
+        with open(tmp, "wb") as f:
+            f.write(data)
+        try:
+            os.link(tmp, self.path)
+            return True
+        except FileExistsError:
+            return False
+        finally:
+            os.unlink(tmp)
+
+    def _read(self) -> dict | None:
+        try:
+            return json.loads(self.writer.fs.cat_file(self.path))
+        except (FileNotFoundError, ValueError):
+            return None
+
+    def _take_over(self, stale: dict | None) -> bool:
+        """Remove the stale lock ``stale`` unless another process replaced it meanwhile;
+        True when it was removed (by this process or another)."""
+        fs = self.writer.fs
+        aside = f"{self.path}.{uuid.uuid4().hex}.stale"
+        try:
+            fs.mv(self.path, aside)
+        except FileNotFoundError:
+            return False
+        try:
+            moved = json.loads(fs.cat_file(aside))
+        except ValueError:
+            moved = None
+        if moved != stale:  # a live run's fresh lock, taken between the read and the move: put it back
+            fs.mv(aside, self.path)
+            return False
+        fs.rm(aside)
+        return True
+
+
+def _process_start(pid: int) -> str | None:
+    """When process ``pid`` started, as an opaque string (boot id and start tick on Linux;
+    None where /proc does not tell), so that a pid reused by a later process is not mistaken
+    for the holder of a lock."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip()
+        with open(f"/proc/{pid}/stat") as f:
+            stat = f.read()
+        return f"{boot}:{stat.rsplit(')', 1)[1].split()[19]}"
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(holder: dict) -> bool:
+    """The process that wrote lock ``holder`` is still running (assumed so on another host)."""
+    if holder.get("host") != socket.gethostname():
+        return True
+    pid = int(holder.get("pid", -1))
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # alive, another user's
+    started = holder.get("started")
+    return started is None or _process_start(pid) in (None, started)
+
+
+def _describe(holder: dict) -> str:
+    command = holder.get("command") or "?"
+    return f"pid {holder.get('pid')} on {holder.get('host')}, since {holder.get('since')}: {command}"
 
 
 def _protocols(fs) -> tuple[str, ...]:
@@ -563,15 +747,25 @@ class SceneStore:
         return out
 
 
-def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
+@contextlib.contextmanager
+def _own_files_ignored() -> Iterator[None]:
+    """Listing a group's members: the store's own files (the manifest, the staging folder
+    of a run in progress) are not zarr nodes, which zarr warns about."""
     import zarr
 
     with warnings.catch_warnings():
-        # the staging folder of a run in progress is not a zarr node
         warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)
-        for path, node in group.members(max_depth=None):
-            if isinstance(node, zarr.Array):
-                yield path, node
+        yield
+
+
+def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
+    import zarr
+
+    with _own_files_ignored():
+        members = list(group.members(max_depth=None))
+    for path, node in members:
+        if isinstance(node, zarr.Array):
+            yield path, node
 
 
 def open_store(path: str, storage_options: dict | None = None, *, allow_incomplete: bool = False) -> SceneStore:
@@ -805,13 +999,15 @@ def array_digests(path: str, storage_options: dict | None = None) -> dict[str, s
 
 def _digests(group: "zarr.Group") -> dict[str, str]:
     out = {}
-    for name, array in sorted(group.arrays()):
+    with _own_files_ignored():
+        arrays, groups = sorted(group.arrays()), sorted(group.groups())
+    for name, array in arrays:
         data = np.asarray(array[...])
         h = hashlib.sha256()
         h.update(f"{data.dtype.str}{data.shape}".encode())
         h.update(np.ascontiguousarray(data).tobytes() if data.dtype != object else repr(data.tolist()).encode())
         out[name] = h.hexdigest()
-    for name, sub in sorted(group.groups()):
+    for name, sub in groups:
         out.update({f"{name}/{key}": digest for key, digest in _digests(sub).items()})
     return out
 
