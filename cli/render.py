@@ -91,17 +91,29 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
 
 @click.command()
 @click.argument("store")
-def validate(store):
-    """Check the store STORE against schemas/store.schema.json and for internal consistency
-    (masks match NaNs, classes in range, cameras orthonormal, meshes in range)."""
-    from sceneforge.store import validate_store
+@click.option("--quiet", "-q", is_flag=True, help="Print only the summary line.")
+def validate(store, quiet):
+    """Check the store STORE (a dataset or a prediction store) for what a reader relies on:
+    the schema and layout; every shard file present with the SHA-256 recorded when it was
+    written (the store's manifest.json), none left over, no staging folder; every shard
+    decodable; attributes consistent with the arrays; cameras, classes and, in a dataset
+    store, the ground-truth layer rules (masks match NaNs, layers in order); meshes
+    non-empty where the view has layers, offsets and faces in range.
 
-    problems = validate_store(store)
-    for p in problems:
-        click.secho(f"invalid: {p}", fg="red", err=True)
-    if problems:
-        raise SystemExit(1)
-    click.echo(f"{store}: valid")
+    Prints one summary line, then a line per problem (each rule once, with the views that
+    break it). Exit code: 0 valid, 3 invalid or incomplete, 1 no store there.
+    """
+    from sceneforge.store import check_store
+
+    check = check_store(store)
+    click.secho(check.summary(), fg=None if check.valid else "red", err=not check.valid)
+    if not quiet:
+        for p in check.problems if check.complete else []:
+            click.secho(f"  {p}", fg="red", err=True)
+        for note in check.notes:
+            click.echo(f"  note: {note}", err=not check.valid)
+    if not check.valid:
+        raise SystemExit(EXIT_FAILURES)
 
 
 @click.command()
