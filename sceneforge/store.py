@@ -1094,7 +1094,7 @@ def _check_views(store: SceneStore, config: "DatasetConfig", prediction: bool,
 def _check_meshes(store: SceneStore, layers: np.ndarray | None) -> list[str]:
     problems = []
     found = _Findings()
-    for k, kind in enumerate(MESH_KINDS):
+    for kind in MESH_KINDS:
         try:
             vo = store.array(f"mesh/{kind}/vertex_offsets")[:]
             fo = store.array(f"mesh/{kind}/face_offsets")[:]
