@@ -157,6 +157,31 @@ def test_a_second_render_into_the_same_store_is_refused_and_the_first_completes(
         assert len(faces) > 0 and np.abs(vertices).max() > 0
 
 
+@pytest.mark.parametrize("executor", [["--workers", "2"], ["--workers", "2", "--scheduler", "local"]],
+                         ids=["process pool", "LocalCluster"])
+def test_workers_die_within_10_s_of_a_sigkilled_render(executor, small_house, tmp_path):
+    psutil = pytest.importorskip("psutil")
+    small_house.id = "one"
+    write_house(small_house, tmp_path / "houses" / "one")
+    render = subprocess.Popen([sys.executable, "-c", CHILD, str(tmp_path / "houses"), str(tmp_path / "out.zarr"),
+                               "--resolution", "16x12", "--overhead-resolution", "8", "--views-per-house", "2",
+                               "--no-rgb", *executor], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    workers = []
+    while not workers:
+        assert render.poll() is None and time.monotonic() < deadline, "the run ended before a worker started"
+        workers = [p for p in psutil.Process(render.pid).children(recursive=True)
+                   if "spawn_main" in " ".join(p.cmdline())]
+        time.sleep(0.05)
+    descendants = psutil.Process(render.pid).children(recursive=True)
+    render.send_signal(signal.SIGKILL)
+    render.wait()
+    gone, alive = psutil.wait_procs(descendants, timeout=10)
+    for p in alive:  # leave nothing behind, then fail
+        p.kill()
+    assert alive == [], f"alive 10 s after the run was killed: {[' '.join(p.cmdline())[:80] for p in alive]}"
+
+
 def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, tmp_path, monkeypatch):
     import sceneforge.store
 
