@@ -24,19 +24,23 @@ def _is_url(path: str) -> bool:
     return "://" in str(path)
 
 
-def check_output(path: str | os.PathLike | None, what: str = "output", folder: bool = False) -> None:
-    """Raise :class:`SceneforgeError` (one line) unless a file (``folder``: a folder) can be
-    written at ``path``: its parent folders are created, and a probe file is written into
-    the folder that will hold it and removed. None and URLs (fsspec: checked by the store
-    writer) pass."""
+def check_output(path: str | os.PathLike | None, what: str = "output", kind: str = "file") -> None:
+    """Raise :class:`SceneforgeError` (one line) unless ``what`` can be written at ``path``,
+    by writing a probe file where it will go (and removing it). None and URLs (fsspec: the
+    store writer checks those) pass.
+
+    kind : ``"file"``; ``"folder"``, created now (e.g. the folder export writes files into);
+           or ``"store"``, a folder the command itself creates or replaces (a store, a
+           training run): its parent is probed and it is not created
+    """
     if path is None or _is_url(str(path)):
         return
     path = Path(path)
-    if folder and path.is_file():
+    if kind != "file" and path.is_file():
         raise SceneforgeError(f"{path}: {what} is a file, not a folder")
-    if not folder and path.is_dir():
+    if kind == "file" and path.is_dir():
         raise SceneforgeError(f"{path}: {what} is a folder, not a file")
-    home = path if folder else path.parent
+    home = path if kind == "folder" else path.parent
     probe = home / f".sceneforge-probe-{uuid.uuid4().hex}"
     try:
         home.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ from click.core import ParameterSource
 from sceneforge.config import DatasetConfig
 
 from .options import HOUSE_OPTIONS, ConfigOption, config_options
+from .output import check_output, save_figure
 
 
 def _box_line(cand) -> str:
@@ -54,6 +55,7 @@ def overhead_camera(house, config, camera_file, views, view_index, plot):
     if camera_file and sampler_options:
         raise click.UsageError(f"--camera-file and {'/'.join(sampler_options)} exclude each other")
 
+    check_output(plot, "plot")
     explained = explain_overhead_cameras(house, camera_file or views, options=config.houses, sampler=config.sampler,
                                          seed=config.seed, config=config.view.overhead, view_index=view_index)
     report = explained.sampled
@@ -73,6 +75,5 @@ def overhead_camera(house, config, camera_file, views, view_index, plot):
             out = Path(plot)
             if len(explained.views) > 1:
                 out = out.with_name(f"{out.stem}_{view.index}{out.suffix}")
-            out.parent.mkdir(parents=True, exist_ok=True)
-            plot_candidates(view.points, view.overhead).savefig(out, dpi=100)
+            save_figure(plot_candidates(view.points, view.overhead), out)
             click.echo(f"  plot: {out}")

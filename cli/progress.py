@@ -18,8 +18,9 @@ class RichProgress:
         self.bar.advance(self.task, n)
 
 
-def progress_bar(console):
-    """A rich progress bar showing done/total, the rate in the task's unit and the time left."""
+def progress_bar(console, transient: bool = False):
+    """A rich progress bar showing done/total, the rate in the task's unit and the time left
+    (``transient``: removed when done, leaving the command's output as it was)."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -43,4 +44,5 @@ def progress_bar(console):
             return Text(f"{done / elapsed:.1f} {task.fields['unit']}/s")
 
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), Rate(),
-                    TextColumn("ETA"), TimeRemainingColumn(), console=console)
+                    TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=transient,
+                    disable=transient and not console.is_terminal)

@@ -11,7 +11,7 @@ from sceneforge.config import DatasetConfig
 from sceneforge.errors import EXIT_FAILURES
 
 from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
-from .output import plural
+from .output import atomic_output, check_output, plural
 from .progress import RichProgress, progress_bar
 
 #: the options of ``render`` and the config fields they set (help and defaults: the fields')
@@ -62,6 +62,7 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
     if all(ctx.get_parameter_source(p) == ParameterSource.COMMANDLINE for p in ("cameras", "views_per_house")):
         raise click.UsageError("--cameras and --views-per-house exclude each other")
 
+    check_output(out, "store", kind="store")
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:
         summary = render_dataset(houses, out, config, workers=workers, scheduler=scheduler, overwrite=overwrite,
@@ -129,14 +130,21 @@ def show(store, index, output, ply):
     from sceneforge.preview import write_panel, write_point_cloud
     from sceneforge.store import open_store
 
+    for path, what in ((output, "panel"), (ply, "point cloud")):
+        check_output(path, what)
     s = open_store(store)
     if not -len(s) <= index < len(s):
         raise click.BadParameter(f"the store has {len(s)} views", param_hint="--view")
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
-    png = write_panel(s, index, output or f"{name}_view{index % len(s)}.png")
+    png = Path(output or f"{name}_view{index % len(s)}.png")
+    check_output(png, "panel")
+    with atomic_output(png) as tmp:
+        write_panel(s, index, tmp)
     click.echo(f"panel: {png}")
     if ply:
-        click.echo(f"point cloud: {write_point_cloud(s, index, ply)}")
+        with atomic_output(ply) as tmp:
+            write_point_cloud(s, index, tmp)
+        click.echo(f"point cloud: {ply}")
 
 
 @click.command()
@@ -146,14 +154,16 @@ def show(store, index, output, ply):
               help="File format: one multi-part OpenEXR per view (frontal D1..D5 and RGB, overhead "
                    "height and D1..D5, camera metadata in the headers).")
 def export(store, out_dir, fmt):
-    """Write every view of STORE as a file in OUT_DIR (view_<index>.exr)."""
+    """Write every view of STORE as a file in OUT_DIR, named by its view index with six
+    digits: view_000000.exr, view_000001.exr, ... (each written atomically)."""
     from rich.progress import track
 
     from sceneforge.store import export_exr, open_store
 
+    check_output(out_dir, "export folder", kind="folder")
     s = open_store(store)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     for i in track(range(len(s)), description="exporting", transient=True):
-        export_exr(s, i, out / f"view_{i:06d}.{fmt}")
-    click.echo(f"{len(s)} views written to {out}")
+        with atomic_output(out / f"view_{i:06d}.{fmt}") as tmp:
+            export_exr(s, i, tmp)
+    click.echo(f"{plural(len(s), 'view')} written to {out}")
