@@ -222,8 +222,9 @@ def test_an_interrupted_run_names_an_added_house_and_update_takes_it_in(small_ho
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(sceneforge.store, "write_shard", disk_full)
-    with pytest.raises(SceneforgeError, match="No space left"):
+    with pytest.raises(SceneforgeError, match="No space left") as failed:
         render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
+    assert "intact" not in str(failed.value)  # no shard was written
     monkeypatch.undo()
     shutil.copytree(tmp_path / "houses" / "a", tmp_path / "houses" / "a2")
     with pytest.raises(SceneforgeError, match=r"houses changed since this run started \(added: a2\); pass --update"):
