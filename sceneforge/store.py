@@ -15,9 +15,11 @@ validator cannot disagree.
   the conventions, the NYU40 table, per-house provenance and the failure log.
 
 This module is the only one that touches zarr. :class:`StoreWriter` writes a store (``sceneforge
-render`` and ``sceneforge predict`` both go through it); :func:`open_store` reads one with
-numpy only (no PyTorch); :func:`validate_store` checks one against the schema and for
-internal consistency; :func:`array_digests` fingerprints its contents.
+render`` and ``sceneforge predict`` both go through it), holding its lock (:class:`StoreLock`)
+for the run, and records a manifest of every shard file's SHA-256 when it completes it;
+:func:`open_store` reads one with numpy only (no PyTorch); :func:`check_store` (and
+:func:`validate_store`) checks one against the schema, its manifest and for internal
+consistency; :func:`array_digests` fingerprints its contents.
 """
 
 from __future__ import annotations
