@@ -4,6 +4,9 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 DEMO   ?= demo
+# where pip gets torch: empty = the default index; on a machine with no NVIDIA GPU where pip
+# would take the CUDA build, TORCH_INDEX=https://download.pytorch.org/whl/cpu gets the CPU one
+TORCH_INDEX ?=
 
 .DEFAULT_GOAL := help
 .PHONY: help install demo test bench lint clean
@@ -15,8 +18,8 @@ $(STAMP): pyproject.toml scripts/system-deps.sh
 	bash scripts/system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
-	# torch first and pinned: its CPU build; a plain `torch` would pull GBs of CUDA packages
-	$(PY) -m pip install --quiet torch==2.13.0
+	# torch first and pinned (README "Two commands": which build that is, and TORCH_INDEX)
+	$(PY) -m pip install --quiet torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PY) -m pip install --quiet -e ".[all]"
 	touch $(STAMP)
 

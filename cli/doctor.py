@@ -10,6 +10,8 @@ from importlib import metadata
 
 import click
 
+from sceneforge.errors import EXIT_FAILURES
+
 #: (import name, distribution name, what needs it, how to install it)
 PACKAGES = (
     ("embreex", "embreex", "first-hit ray tracing", "pip install 'sceneforge[trace]'"),
@@ -111,7 +113,7 @@ def doctor(gpu):
     """Check the installation: versions of the optional packages, torch's CUDA, the EGL
     devices and OpenGL driver, and one rendered frame of a bundled toy house. Prints one
     PASS, WARN or FAIL line per check (with what to install for each FAIL) and exits with
-    status 1 when a check failed.
+    status 3 when a check failed.
     """
     checks = [Check("PASS", "python", platform.python_version())]
     checks += [check_package(*package) for package in PACKAGES]
@@ -125,4 +127,4 @@ def doctor(gpu):
     failed = sum(c.status == "FAIL" for c in checks)
     click.echo(f"{failed} of {len(checks)} checks failed" if failed else f"all {len(checks)} checks passed")
     if failed:
-        click.get_current_context().exit(1)
+        click.get_current_context().exit(EXIT_FAILURES)

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import click
 
 from sceneforge.evaluate.config import EvaluateConfig
 
 from .options import ConfigOption, config_options
+from .output import check_output, save_figure, write_text
 
 #: the options of the surface precision/recall commands and the config fields they set
 SURFACE_OPTIONS = (
@@ -35,14 +35,34 @@ def _json(func):
                         help="Also write the table values and mean curves to this JSON file.")(func)
 
 
+def _check(plot, json_path):
+    """Both outputs writable, before hours of scoring."""
+    check_output(plot, "plot")
+    check_output(json_path, "JSON file")
+
+
+def _scored(views, total: int):
+    """``views`` on a progress bar of ``total`` views (scoring takes seconds per view)."""
+    from rich.console import Console
+
+    from .progress import RichProgress, progress_bar
+
+    with progress_bar(Console(stderr=True), transient=True) as bar:
+        progress = RichProgress(bar)
+        progress.start("scoring views", total, "views")
+        for view in views:
+            yield view
+            progress.advance(1)
+
+
 def _write(report, text, plot, json_path, title):
+    """The table, then the values (JSON first: a plot that fails loses no numbers), then the plot."""
     click.echo(text)
-    Path(plot).parent.mkdir(parents=True, exist_ok=True)
-    report.plot(title).savefig(plot, dpi=100)
-    click.echo(f"curves: {plot}")
     if json_path:
-        Path(json_path).write_text(json.dumps(report.to_dict(), indent=1))
+        write_text(json_path, json.dumps(report.to_dict(), indent=1))
         click.echo(f"values: {json_path}")
+    save_figure(report.plot(title), plot)
+    click.echo(f"curves: {plot}")
 
 
 @click.group()
@@ -64,10 +84,13 @@ def coverage(store, config, limit, json_path, plot):
     D1-5 & overhead against objects + envelope, averaged over views, beside the paper's
     SUNCG numbers; also recall against objects alone and precision."""
     from sceneforge.evaluate import COVERAGE_VARIANTS, coverage_views, evaluate_views
+    from sceneforge.evaluate.stores import views_to_score
     from sceneforge.store import open_store
 
-    report = evaluate_views(coverage_views(open_store(store), limit), COVERAGE_VARIANTS, config.seed,
-                            config.surface, config.meshing)
+    _check(plot, json_path)
+    s = open_store(store)
+    views = _scored(coverage_views(s, limit), len(views_to_score(s, limit)))
+    report = evaluate_views(views, COVERAGE_VARIANTS, config.seed, config.surface, config.meshing)
     _write(report, report.coverage_text(), plot, json_path, f"coverage of ground-truth layers: {store}")
 
 
@@ -85,10 +108,13 @@ def predictions(pred, gt, config, limit, json_path, plot):
     D1 & overhead, D1-4 and D1-4 & overhead against objects, beside the paper's SUNCG
     numbers. Cameras and overhead cameras are PRED's; view i of PRED must be view i of GT."""
     from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
+    from sceneforge.evaluate.stores import views_to_score
     from sceneforge.store import open_store
 
-    report = evaluate_views(prediction_views(open_store(pred), open_store(gt), limit), PREDICTION_VARIANTS,
-                            config.seed, config.surface, config.meshing)
+    _check(plot, json_path)
+    p = open_store(pred)
+    views = _scored(prediction_views(p, open_store(gt), limit), len(views_to_score(p, limit)))
+    report = evaluate_views(views, PREDICTION_VARIANTS, config.seed, config.surface, config.meshing)
     _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}")
 
 
@@ -112,11 +138,11 @@ def voxels(layers, gt, config, limit, plot):
     from sceneforge.evaluate import plot_iou_histogram, score_store_voxels
     from sceneforge.store import open_store
 
+    check_output(plot, "plot")
     report = score_store_voxels(open_store(layers), open_store(gt) if gt else None, config.voxels, limit,
                                 on_view=lambda v: click.echo(_voxel_line(v)))
     mean = "—" if report.scored == 0 else f"{report.mean:.3f}"
     click.echo(f"mean voxel IoU {mean} over {report.scored} views "
                f"({len(report.views) - report.scored} without objects)")
-    Path(plot).parent.mkdir(parents=True, exist_ok=True)
-    plot_iou_histogram(report.ious, f"voxel IoU of {layers}").savefig(plot, dpi=100)
+    save_figure(plot_iou_histogram(report.ious, f"voxel IoU of {layers}"), plot)
     click.echo(f"histogram: {plot}")

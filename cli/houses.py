@@ -7,8 +7,10 @@ from pathlib import Path
 import click
 
 from sceneforge.config import DatasetConfig
+from sceneforge.errors import EXIT_FAILURES
 
 from .options import HOUSE_OPTIONS, config_options
+from .output import atomic_output, check_output, plural
 
 
 @click.group()
@@ -34,7 +36,7 @@ def inspect(path, config, preview_dir, show_cameras):
 
     PATH is one house, a folder of houses in any supported format, a SUNCG root, a
     3D-FRONT root, or `bundled:toy` for the toy houses shipped with sceneforge. A house that fails to load is reported in red and the others go on;
-    the exit code is 1 when any failed.
+    the exit code is 3 when any failed.
     """
     from rich.console import Console
     from rich.table import Table
@@ -42,6 +44,7 @@ def inspect(path, config, preview_dir, show_cameras):
     from sceneforge.houses import iter_houses
     from sceneforge.houses.inspect import summarize, write_preview
 
+    check_output(preview_dir, "preview folder", kind="folder")
     out = Console(highlight=False, soft_wrap=True)
     ok = failed = 0
     for _source, house, error in iter_houses(path, config.houses):
@@ -79,9 +82,11 @@ def inspect(path, config, preview_dir, show_cameras):
             for line in report.lines():
                 out.print(line)
         if preview_dir:
-            png = write_preview(house, Path(preview_dir) / f"{s.id}.png")
+            png = Path(preview_dir) / f"{s.id}.png"
+            with atomic_output(png) as tmp:
+                write_preview(house, tmp)
             out.print(f"preview: {png}")
         out.print()
-    out.print(f"{ok} houses read, {failed} failed")
+    out.print(f"{plural(ok, 'house')} read, {failed} failed")
     if failed:
-        raise SystemExit(1)
+        raise SystemExit(EXIT_FAILURES)

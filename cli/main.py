@@ -2,15 +2,23 @@
 
 Subcommands are imported only when used, so ``sceneforge --help`` stays instant and a
 missing optional dependency only affects the command that needs it.
+
+Expected failures end as one red line and an exit code from :mod:`sceneforge.errors`
+(``EXIT_*``): an error the user can fix (:class:`SceneforgeError`, or an :class:`OSError`
+such as an unwritable path or a full disk) exits with 1, a bad option with 2 (Click), work
+done with some failures with 3, Ctrl-C with 130 (and SIGTERM is handled like it, so that
+a store's lock is released).
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
+import signal
 
 import click
 
-from sceneforge.errors import SceneforgeError
+from sceneforge.errors import EXIT_ERROR, EXIT_INTERRUPTED, SceneforgeError
 
 #: command name → "module:attribute" under ``sceneforge.cli``
 COMMANDS = {
@@ -26,6 +34,25 @@ COMMANDS = {
     "train": "train:train",
     "predict": "train:predict",
 }
+
+
+#: what a command interrupted by Ctrl-C says about going on (default: nothing)
+ON_INTERRUPT = {
+    "render": "run the same command again to resume",
+    "train": "run it again with --resume to continue from the last checkpoint",
+}
+
+
+class _WarningLines(logging.Handler):
+    """Warnings of the library's loggers as yellow lines on stderr."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        click.secho(f"warning: {record.getMessage()}", fg="yellow", err=True)
+
+
+def _oserror_line(e: OSError) -> str:
+    what = f"{e.filename}: " if e.filename else ""
+    return f"{what}{e.strerror or e}"
 
 
 class LazyGroup(click.Group):
@@ -49,7 +76,15 @@ class LazyGroup(click.Group):
             return super().invoke(ctx)
         except SceneforgeError as e:
             click.secho(f"error: {e}", fg="red", err=True)
-            ctx.exit(1)
+            ctx.exit(EXIT_ERROR)
+        except OSError as e:  # an unwritable path, a full disk, a file gone: the user's to fix
+            click.secho(f"error: {_oserror_line(e)}", fg="red", err=True)
+            ctx.exit(EXIT_ERROR)
+        except KeyboardInterrupt:
+            name = ctx.invoked_subcommand or ""
+            hint = ON_INTERRUPT.get(name)
+            click.secho(f"interrupted{f': {hint}' if hint else ''}", fg="red", err=True)
+            ctx.exit(EXIT_INTERRUPTED)
 
 
 @click.group(cls=LazyGroup, lazy=COMMANDS, context_settings={"help_option_names": ["-h", "--help"]})
@@ -60,8 +95,20 @@ def cli():
     Implements "3D Scene Reconstruction with Multi-layer Depth and Epipolar
     Transformers" (Shin et al., ICCV 2019). Conventions: metres, +Y up, OpenCV camera
     axes (x right, y down, z forward), planar depth, NaN = no surface, NYU40 labels.
+
+    Exit codes: 0 done; 1 an error (one red line; what was written is kept); 2 a bad
+    option or argument; 3 done, but some houses, views or checks failed; 130 interrupted.
     """
+    logger = logging.getLogger("sceneforge")
+    if not any(isinstance(h, _WarningLines) for h in logger.handlers):
+        logger.addHandler(_WarningLines(logging.WARNING))
+        logger.propagate = False
+
+
+def _terminate(signum, frame):
+    raise KeyboardInterrupt  # unwinds like Ctrl-C: locks released, "interrupted" printed
 
 
 def main():
+    signal.signal(signal.SIGTERM, _terminate)
     cli()

@@ -218,3 +218,24 @@ HOUSE_OPTIONS = (
     ConfigOption("--name-map", "houses.name_map", type=click.Path(exists=True, dir_okay=False)),
     ConfigOption("--future-dir", "houses.future_dir", type=click.Path(exists=True, file_okay=False)),
 )
+
+
+def check_device(device: str) -> str:
+    """``device`` (``--device``) if torch can use it: ``auto``, ``cpu``, ``mps``, ``cuda`` or
+    ``cuda:N``; else :class:`SceneforgeError`, one line saying what is accepted (or that
+    there is no such GPU)."""
+    from sceneforge.errors import SceneforgeError
+
+    match = re.fullmatch(r"auto|cpu|mps|cuda(?::(\d+))?", device)
+    if match is None:
+        raise SceneforgeError(f"--device {device}: expected auto, cpu, cuda, cuda:N (N a GPU index) or mps")
+    if device.startswith("cuda"):
+        import torch
+
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise SceneforgeError(f"--device {device}: torch sees no CUDA GPU (torch {torch.__version__}); "
+                                  "use --device cpu")
+        if match.group(1) is not None and int(match.group(1)) >= count:
+            raise SceneforgeError(f"--device {device}: torch sees {count} CUDA GPU(s), numbered from 0")
+    return device

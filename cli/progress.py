@@ -12,14 +12,15 @@ class RichProgress:
     def start(self, step: str, total: int, unit: str, done: int = 0) -> None:
         if self.task is not None:
             self.bar.update(self.task, visible=False)
-        self.task = self.bar.add_task(step, total=total, completed=done, unit=unit)
+        self.task = self.bar.add_task(step, total=total, completed=done, unit=unit, initial=done)
 
     def advance(self, n: int) -> None:
         self.bar.advance(self.task, n)
 
 
-def progress_bar(console):
-    """A rich progress bar showing done/total, the rate in the task's unit and the time left."""
+def progress_bar(console, transient: bool = False):
+    """A rich progress bar showing done/total, the rate in the task's unit and the time left
+    (``transient``: removed when done, leaving the command's output as it was)."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -31,9 +32,17 @@ def progress_bar(console):
     from rich.text import Text
 
     class Rate(ProgressColumn):
+        """Work done in this step over its wall time since it started: the rate the
+        command's last line reports (rich's own speed leaves out the wait for the first
+        result, e.g. the workers starting)."""
+
         def render(self, task):
-            speed = task.finished_speed or task.speed
-            return Text("" if speed is None else f"{speed:.1f} {task.fields['unit']}/s")
+            elapsed = task.finished_time if task.finished else task.elapsed
+            done = task.completed - task.fields.get("initial", 0)
+            if not elapsed or done <= 0:
+                return Text("")
+            return Text(f"{done / elapsed:.1f} {task.fields['unit']}/s")
 
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), Rate(),
-                    TextColumn("ETA"), TimeRemainingColumn(), console=console)
+                    TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=transient,
+                    disable=transient and not console.is_terminal)

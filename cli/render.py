@@ -8,8 +8,10 @@ import click
 from click.core import ParameterSource
 
 from sceneforge.config import DatasetConfig
+from sceneforge.errors import EXIT_FAILURES
 
 from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
+from .output import atomic_output, check_output, plural
 from .progress import RichProgress, progress_bar
 
 #: the options of ``render`` and the config fields they set (help and defaults: the fields')
@@ -36,7 +38,11 @@ RENDER_OPTIONS = (
               help="Run on a Dask cluster: its scheduler address (tcp://host:8786), or `local` to start "
                    "a LocalCluster of --workers processes.")
 @click.option("--overwrite", is_flag=True, help="Delete the store at OUT first and start over.")
-def render(houses, out, config, workers, scheduler, overwrite):
+@click.option("--update", is_flag=True,
+              help="When houses changed, were added or removed since OUT was rendered (their files are "
+                   "fingerprinted), redo exactly those; without it such a run is refused, naming them.")
+@click.option("--retry-failed", is_flag=True, help="Render the houses that failed again.")
+def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed):
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
@@ -44,8 +50,9 @@ def render(houses, out, config, workers, scheduler, overwrite):
     anything `sceneforge houses inspect` takes, e.g. `bundled:toy`.
 
     Run the same command again after an interruption to resume; the result is identical
-    to an uninterrupted run. Houses that fail are recorded in the store's failure log and
-    the others complete; the exit code is then 1.
+    to an uninterrupted run. One run writes a store at a time (a second is refused). Houses
+    that fail are recorded in the store's failure log and the others complete; the exit
+    code is then 3 (1: an error, nothing lost; 2: a bad option).
     """
     from rich.console import Console
 
@@ -55,39 +62,59 @@ def render(houses, out, config, workers, scheduler, overwrite):
     if all(ctx.get_parameter_source(p) == ParameterSource.COMMANDLINE for p in ("cameras", "views_per_house")):
         raise click.UsageError("--cameras and --views-per-house exclude each other")
 
+    check_output(out, "store", kind="store")
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:
         summary = render_dataset(houses, out, config, workers=workers, scheduler=scheduler, overwrite=overwrite,
-                                 progress=RichProgress(bar))
+                                 update=update, retry_failed=retry_failed, progress=RichProgress(bar))
+    if summary.changes:
+        console.print(f"updated: {summary.changes.describe()}")
+    if summary.retried:
+        console.print(f"retried: {', '.join(summary.retried)}")
     if summary.already_complete:
-        console.print(f"{summary.path}: already complete ({summary.views} views); nothing to do")
+        console.print(f"{summary.path}: already complete ({plural(summary.views, 'view')}); nothing to do")
     else:
-        rate = summary.views / summary.seconds if summary.seconds > 0 else 0.0
-        console.print(f"{summary.path}: {summary.views} views of {summary.houses} houses in {summary.shards} shards "
-                      f"({summary.shards_run} written now) in {summary.seconds:.1f} s ({rate:.1f} views/s)")
+        # the progress bar's rate: views rendered now over the rendering step's wall time
+        rate = summary.views_rendered / summary.render_seconds if summary.render_seconds > 0 else 0.0
+        console.print(f"{summary.path}: {plural(summary.views, 'view')} of {plural(summary.houses, 'house')} in "
+                      f"{plural(summary.shards, 'shard')} ({summary.shards_run} written now) in "
+                      f"{summary.seconds:.1f} s; rendering {rate:.1f} views/s")
     for f in summary.failures:
         where = f"view {f['view']}" if f.get("view") is not None else f["stage"]
         reason = f["reason"].removeprefix(f"house {f['house']}: ")  # load errors name the house too
         console.print(f"[red]failed: house {f['house']} ({where}): {reason}[/red]")
     if summary.failed_houses:
-        console.print(f"[red]{len(summary.failed_houses)} houses failed[/red] (failure log: the store's "
-                      "`failures` attribute)")
-        raise SystemExit(1)
+        retry = "" if retry_failed else "; --retry-failed renders them again"
+        console.print(f"[red]{plural(len(summary.failed_houses), 'house')} failed[/red] (failure log: the store's "
+                      f"`failures` attribute{retry})")
+        raise SystemExit(EXIT_FAILURES)
 
 
 @click.command()
 @click.argument("store")
-def validate(store):
-    """Check the store STORE against schemas/store.schema.json and for internal consistency
-    (masks match NaNs, classes in range, cameras orthonormal, meshes in range)."""
-    from sceneforge.store import validate_store
+@click.option("--quiet", "-q", is_flag=True, help="Print only the summary line.")
+def validate(store, quiet):
+    """Check the store STORE (a dataset or a prediction store) for what a reader relies on:
+    the schema and layout; every shard file present with the SHA-256 recorded when it was
+    written (the store's manifest.json), none left over, no staging folder; every shard
+    decodable; attributes consistent with the arrays; cameras, classes and, in a dataset
+    store, the ground-truth layer rules (masks match NaNs, layers in order); meshes
+    non-empty where the view has layers, offsets and faces in range.
 
-    problems = validate_store(store)
-    for p in problems:
-        click.secho(f"invalid: {p}", fg="red", err=True)
-    if problems:
-        raise SystemExit(1)
-    click.echo(f"{store}: valid")
+    Prints one summary line, then a line per problem (each rule once, with the views that
+    break it). Exit code: 0 valid, 3 invalid or incomplete, 1 no store there.
+    """
+    from sceneforge.store import check_store
+
+    check = check_store(store)
+    click.secho(check.summary(), fg=None if check.valid else "red", err=not check.valid)
+    if not quiet:
+        for p in check.problems if check.complete else []:
+            click.secho(f"  {p}", fg="red", err=True)
+        for note in check.notes:
+            click.echo(f"  note: {note}", err=not check.valid)
+    if not check.valid:
+        raise SystemExit(EXIT_FAILURES)
 
 
 @click.command()
@@ -103,14 +130,21 @@ def show(store, index, output, ply):
     from sceneforge.preview import write_panel, write_point_cloud
     from sceneforge.store import open_store
 
+    for path, what in ((output, "panel"), (ply, "point cloud")):
+        check_output(path, what)
     s = open_store(store)
     if not -len(s) <= index < len(s):
         raise click.BadParameter(f"the store has {len(s)} views", param_hint="--view")
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
-    png = write_panel(s, index, output or f"{name}_view{index % len(s)}.png")
+    png = Path(output or f"{name}_view{index % len(s)}.png")
+    check_output(png, "panel")
+    with atomic_output(png) as tmp:
+        write_panel(s, index, tmp)
     click.echo(f"panel: {png}")
     if ply:
-        click.echo(f"point cloud: {write_point_cloud(s, index, ply)}")
+        with atomic_output(ply) as tmp:
+            write_point_cloud(s, index, tmp)
+        click.echo(f"point cloud: {ply}")
 
 
 @click.command()
@@ -120,14 +154,16 @@ def show(store, index, output, ply):
               help="File format: one multi-part OpenEXR per view (frontal D1..D5 and RGB, overhead "
                    "height and D1..D5, camera metadata in the headers).")
 def export(store, out_dir, fmt):
-    """Write every view of STORE as a file in OUT_DIR (view_<index>.exr)."""
+    """Write every view of STORE as a file in OUT_DIR, named by its view index with six
+    digits: view_000000.exr, view_000001.exr, ... (each written atomically)."""
     from rich.progress import track
 
     from sceneforge.store import export_exr, open_store
 
+    check_output(out_dir, "export folder", kind="folder")
     s = open_store(store)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     for i in track(range(len(s)), description="exporting", transient=True):
-        export_exr(s, i, out / f"view_{i:06d}.{fmt}")
-    click.echo(f"{len(s)} views written to {out}")
+        with atomic_output(out / f"view_{i:06d}.{fmt}") as tmp:
+            export_exr(s, i, tmp)
+    click.echo(f"{plural(len(s), 'view')} written to {out}")

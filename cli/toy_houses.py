@@ -38,6 +38,10 @@ def toy_houses(out, count, seed, **cases):
     """
     from sceneforge.houses.toy import write_toy_houses
 
+    from .output import check_output
+
+    check_output(out, "output folder", kind="folder")
+
     def report(house, folder):
         click.echo(f"{house.id}  rooms {len(house.rooms)}  instances {len(house.instances)}  "
                    f"triangles {house.triangle_count:,}  -> {folder}")

@@ -8,7 +8,8 @@ import click
 
 from sceneforge.learn.config import PredictConfig, TrainConfig
 
-from .options import ConfigOption, config_options
+from .options import ConfigOption, check_device, config_options
+from .output import check_output, plural
 from .progress import RichProgress, progress_bar
 
 #: where runs go when no --run is given, and where the frozen runs are looked for
@@ -65,7 +66,7 @@ def _train_bar(console):
 @click.option("--run", "run_dir", type=click.Path(file_okay=False), default=None,
               help="Run folder (config, split, checkpoint, metrics, loss curve). [default: runs/STAGE]")
 @click.option("--device", default="auto", show_default=True,
-              help="auto (GPU when present), cpu, cuda, cuda:1, ...")
+              help="auto (the GPU when torch sees one), cpu, cuda, cuda:N (GPU N) or mps.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
               help="DataLoader worker processes.")
 @click.option("--resume", is_flag=True, help="Continue the run saved in the run folder.")
@@ -85,12 +86,15 @@ def train(config, run_dir, device, workers, resume, tensorboard):
     from sceneforge.learn.train import train as run_training
 
     run = Path(run_dir or Path(RUNS) / config.stage)
+    check_output(run, "run folder", kind="store")
+    check_device(device)
     config = config.with_frozen_runs(RUNS)
     console = Console(highlight=False, stderr=True)
     with _train_bar(console) as bar:
         result = run_training(config, run, device=device, workers=workers, resume=resume,
                               tensorboard=tensorboard, progress=_TrainBar(bar))
-    console.print(f"{result.run}: {result.steps} steps, {result.epochs} epochs in {result.seconds:.1f} s "
+    console.print(f"{result.run}: {plural(result.steps, 'step')}, {plural(result.epochs, 'epoch')} in "
+                  f"{result.seconds:.1f} s "
                   f"({result.images_per_s:.1f} images/s); train loss {result.train_loss:.4g}, "
                   f"val loss {result.val_loss:.4g}")
     console.print(f"metrics: {result.run / 'metrics.csv'}  loss curve: {result.run / 'loss_curve.png'}")
@@ -101,7 +105,8 @@ def train(config, run_dir, device, workers, resume, tensorboard):
 @click.argument("store")
 @click.argument("out")
 @config_options(PredictConfig, PREDICT_OPTIONS)
-@click.option("--device", default="auto", show_default=True, help="auto (GPU when present), cpu, cuda, ...")
+@click.option("--device", default="auto", show_default=True,
+              help="auto (the GPU when torch sees one), cpu, cuda, cuda:N (GPU N) or mps.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
               help="DataLoader worker processes.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
@@ -117,6 +122,8 @@ def predict(run, store, out, config, device, workers, overwrite):
 
     from sceneforge.learn.predict import predict as run_prediction
 
+    check_output(out, "prediction store", kind="store")
+    check_device(device)
     console = Console(highlight=False, stderr=True)
     with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,

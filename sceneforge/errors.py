@@ -25,3 +25,21 @@ class MissingDependencyError(SceneforgeError):
 
     def __init__(self, package: str, feature: str, install: str):
         super().__init__(f"{feature} needs {package}: install it with `{install}`")
+
+
+class StoreLockedError(SceneforgeError):
+    """Another live process holds the lock of a store (a second writer is refused)."""
+
+
+#: Exit codes of the ``sceneforge`` command, defined once (README "Exit codes").
+EXIT_OK = 0
+#: an expected error (bad input, unwritable output, full disk, a store another run holds):
+#: one red line; what was written before it is kept
+EXIT_ERROR = 1
+#: a bad option or argument (Click's own code)
+EXIT_USAGE = 2
+#: the command finished, but some of its work failed: houses or views that failed (render,
+#: houses inspect), problems found in a store (validate), checks that failed (doctor)
+EXIT_FAILURES = 3
+#: interrupted by Ctrl-C (128 + SIGINT, as shells report it)
+EXIT_INTERRUPTED = 130

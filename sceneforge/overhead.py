@@ -759,8 +759,9 @@ def explain_overhead_cameras(
     view_index: int | None = None,
 ) -> OverheadExplanation:
     """Load ``house``, get its cameras (the PBRS camera file ``cameras``, or that many
-    cameras sampled from ``np.random.default_rng(seed)``), trace each view's frontal layers
-    and place its overhead camera; only view ``view_index`` when given.
+    cameras sampled as ``sceneforge render`` samples them: from ``seed`` and the house id),
+    trace each view's frontal layers and place its overhead camera; only view
+    ``view_index`` when given.
 
     Raises :class:`SceneforgeError` for a house or camera file that cannot be read, a view
     index beyond the cameras, or a view the overhead camera cannot be placed for.
@@ -775,7 +776,9 @@ def explain_overhead_cameras(
     tracer = HouseTracer(h)
     report = None
     if isinstance(cameras, int):
-        found, report = sample_cameras(h, cameras, np.random.default_rng(seed), sampler, tracer)
+        from .pipeline.plan import _house_rng
+
+        found, report = sample_cameras(h, cameras, _house_rng(seed, h.id), sampler, tracer)
     else:
         found = read_pbrs_cameras(cameras, sampler.width, sampler.height)
     if view_index is not None and not 0 <= view_index < len(found):
@@ -786,6 +789,38 @@ def explain_overhead_cameras(
         overhead, points = overhead_camera_and_points(h, found[i], layers, config)
         views.append(ViewExplanation(i, found[i], overhead, points))
     return OverheadExplanation(views, found, report)
+
+
+def explain_stored_view(store: str, index: int) -> ViewExplanation:
+    """How the overhead camera of view ``index`` of the store at ``store`` was chosen: its
+    house read as the store's run read it (the store's config and the house's recorded
+    path and format), its stored camera, the store's overhead settings; so the overhead
+    camera explained is the one the store holds (``overhead_params``).
+
+    Raises :class:`SceneforgeError` for a view out of range or a failed view (it has no
+    overhead camera).
+    """
+    from pathlib import Path
+
+    from .cameras import Camera
+    from .houses import HouseSource, load
+    from .layers import frontal_layers
+    from .raytrace import HouseTracer
+    from .store import open_store
+
+    s = open_store(store)
+    if not -len(s) <= index < len(s):
+        raise SceneforgeError(f"view {index}: {store} has {len(s)} views")
+    view, config = s.view(index), s.config
+    if not view["valid"]:
+        raise SceneforgeError(f"view {index} of {store} failed when it was rendered (see its failure log): "
+                              "it has no overhead camera")
+    record = next(h for h in s.attrs["houses"] if h["id"] == str(view["house_id"]))
+    house = load(HouseSource(record["id"], record["format"], Path(record["path"])), config.houses)
+    camera = Camera(view["K"], view["cam_to_world"], config.width, config.height)
+    layers = frontal_layers(house, camera, HouseTracer(house))
+    overhead, points = overhead_camera_and_points(house, camera, layers, config.view.overhead)
+    return ViewExplanation(index % len(s), camera, overhead, points)
 
 
 # ---------------------------------------------------------------------------- plot

@@ -15,9 +15,11 @@ validator cannot disagree.
   the conventions, the NYU40 table, per-house provenance and the failure log.
 
 This module is the only one that touches zarr. :class:`StoreWriter` writes a store (``sceneforge
-render`` and ``sceneforge predict`` both go through it); :func:`open_store` reads one with
-numpy only (no PyTorch); :func:`validate_store` checks one against the schema and for
-internal consistency; :func:`array_digests` fingerprints its contents.
+render`` and ``sceneforge predict`` both go through it), holding its lock (:class:`StoreLock`)
+for the run, and records a manifest of every shard file's SHA-256 when it completes it;
+:func:`open_store` reads one with numpy only (no PyTorch); :func:`check_store` (and
+:func:`validate_store`) checks one against the schema, its manifest and for internal
+consistency; :func:`array_digests` fingerprints its contents.
 """
 
 from __future__ import annotations
@@ -25,6 +27,11 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
+import os
+import socket
+import sys
+import time
 import uuid
 import warnings
 from dataclasses import dataclass
@@ -36,8 +43,10 @@ import numpy as np
 
 from . import conventions
 from .conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
-from .errors import MissingDependencyError, SceneforgeError
+from .errors import MissingDependencyError, SceneforgeError, StoreLockedError
 from .frustum import mesh_provenance
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     import zarr
@@ -52,6 +61,9 @@ MESH_KINDS: tuple[str, ...] = ("objects", "envelope")
 #: ragged mesh arrays: rows per chunk, and chunks per shard
 MESH_CHUNK_ROWS = 1 << 16
 MESH_SHARD_CHUNKS = 16
+#: the manifest of a complete store: ``{"files": {key: SHA-256 or null}}`` of every shard
+#: file (null: zarr wrote no file, every value is the fill value), written by ``finalize``
+MANIFEST = "manifest.json"
 
 
 @dataclass(frozen=True)
@@ -330,6 +342,12 @@ class StoreWriter:
     e.g. the render pipeline's staging folder): ``put`` is atomic (a temporary file renamed
     into place), so readers see all of a file or nothing.
 
+    One run writes a store at a time: ``with StoreWriter(url) as writer:`` takes the store's
+    lock (:class:`StoreLock`) for the block and releases it on any exit, exceptions and
+    Ctrl-C included; a second run is refused with :class:`StoreLockedError` naming the
+    holder. The writers of shard tasks in worker processes write under their run's lock
+    and are not entered.
+
     url             : a local path or an fsspec URL (``memory://...``, ``s3://...``)
     storage_options : passed to fsspec and zarr
     """
@@ -350,9 +368,22 @@ class StoreWriter:
         self.zarr_url = self.root if self.local else self.url
         self._group = None
         self._arrays: dict[str, "zarr.Array"] = {}
+        self._lock: StoreLock | None = None
+        #: SHA-256 (hex, None for no file) of every shard file written through this writer
+        self.files: dict[str, str | None] = {}
 
     def __repr__(self) -> str:
         return f"StoreWriter({self.url!r})"
+
+    def __enter__(self) -> "StoreWriter":
+        self._lock = StoreLock(self)
+        self._lock.acquire()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        lock, self._lock = self._lock, None
+        if lock is not None:
+            lock.release()
 
     # ------------------------------------------------------------------------ the arrays
 
@@ -380,21 +411,51 @@ class StoreWriter:
             self.rm(key)
         start = shard * next(iter(arrays.values())).shards[0]
         write_shard(arrays, start, views)
+        self.files.update({key: self.sha256(key) for key in keys})
         return keys
+
+    def resize(self, config: "DatasetConfig", n_views: int) -> None:
+        """Give every per-view array ``n_views`` views, keeping the shards inside (a run
+        that updates some houses of a store rewrites the shards whose views moved)."""
+        sizes = sizes_of(config, n_views)
+        for spec in array_specs(config, per_view=True):
+            self._array(spec.name).resize(spec.shape(sizes))
 
     def write_meshes(self, config: "DatasetConfig", counts: np.ndarray, parts: Iterable[dict[str, np.ndarray]]) -> None:
         """(Re)create and fill the ragged mesh arrays (see :func:`write_meshes`)."""
         write_meshes(self._group_rw(), config, counts, parts)
 
     def finalize(self, config: "DatasetConfig", houses_source: str, n_views: int, *, houses: list[dict],
-                 failures: list[dict], **extra) -> None:
+                 failures: list[dict], files: dict[str, str | None] | None = None, **extra) -> None:
         """Mark the store complete: :func:`base_attrs` with ``complete: true``, the houses'
-        provenance, the failure log and ``extra`` attributes (e.g. ``prediction``); then
-        remove the temporary files of writes cut short."""
+        provenance, the failure log and ``extra`` attributes (e.g. ``prediction``), after
+        writing the manifest (:data:`MANIFEST`): the SHA-256 of every shard file, as written
+        (``files``: those written by other processes, e.g. the render pipeline's workers;
+        with those written through this writer and the mesh arrays' files), so that
+        :func:`validate_store` finds a file damaged, missing or left over later. Then remove
+        the temporary files of writes cut short."""
+        manifest = {**self.files, **(files or {})}
+        for spec in array_specs(config, per_view=False):
+            for key in self._chunk_files(spec.name):
+                manifest[key] = self.sha256(key)
+        data = json.dumps({"files": dict(sorted(manifest.items()))}, indent=0).encode()
+        self.put(MANIFEST, data)
         attrs = base_attrs(config, houses_source, n_views)
-        attrs.update(complete=True, houses=houses, failures=failures, **extra)
+        attrs.update(complete=True, houses=houses, failures=failures, **extra,
+                     manifest={"file": MANIFEST, "files": len(manifest), "sha256": hashlib.sha256(data).hexdigest()})
         self._group_rw().attrs.put(attrs)
         self.remove_partials()
+
+    def _chunk_files(self, name: str) -> list[str]:
+        """Keys of the chunk (or shard) files array ``name`` has now."""
+        prefix = self.path(f"{name}/c")
+        if not self.fs.exists(prefix):
+            return []
+        return sorted(p[len(self.root) + 1:] for p in self.fs.find(prefix))
+
+    def mark_incomplete(self) -> None:
+        """Set ``complete`` false (a run starts changing a complete store)."""
+        self._group_rw().attrs["complete"] = False
 
     def attrs(self) -> dict:
         """The group attributes of the store there now."""
@@ -479,6 +540,131 @@ class StoreWriter:
             for path in self.fs.find(self.root):
                 if path.endswith(".partial"):
                     self.fs.rm(path)
+
+
+class StoreLock:
+    """The lock of a store: a file beside it (``OUT.zarr.lock``) naming the process that
+    writes it (pid, host, process start time, command line).
+
+    A lock whose process is gone (same host, and no process with that pid and start time:
+    killed with SIGKILL, or the machine rebooted) is taken over with a warning on the
+    ``sceneforge.store`` logger. On a local filesystem the lock file is created atomically
+    (a hard link that fails when the file exists); on other fsspec filesystems (object
+    stores) it is checked, then written, which leaves a short window for two runs started
+    at the same moment.
+    """
+
+    def __init__(self, writer: "StoreWriter"):
+        self.writer = writer
+        self.path = f"{writer.root}.lock"
+        self.me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid()),
+                   "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+                   "command": " ".join([os.path.basename(sys.argv[0]), *sys.argv[1:]])}
+
+    def acquire(self) -> None:
+        """Take the lock; raises :class:`StoreLockedError` while a live process holds it."""
+        data = json.dumps(self.me).encode()
+        for _ in range(5):
+            if self._create(data):
+                return
+            holder = self._read()
+            if holder is None:  # being written right now, or torn by a crash while written
+                time.sleep(0.2)
+                holder = self._read()
+            if holder is not None and _alive(holder):
+                elsewhere = "" if holder.get("host") == self.me["host"] else f"; if that run is gone, delete {self.path}"
+                raise StoreLockedError(
+                    f"{self.writer.url}: another run is writing this store ({_describe(holder)}); wait for it to "
+                    f"end, or write elsewhere{elsewhere}")
+            if self._take_over(holder):
+                log.warning("%s: took over the lock of a run that is no longer running (%s)", self.writer.url,
+                            "a torn lock file" if holder is None else _describe(holder))
+        raise StoreLockedError(f"{self.writer.url}: cannot take the lock {self.path}: other runs keep taking it")
+
+    def release(self) -> None:
+        """Remove the lock file, if it is still this process's."""
+        holder = self._read()
+        if holder is not None and holder.get("pid") == self.me["pid"] and holder.get("host") == self.me["host"]:
+            with contextlib.suppress(FileNotFoundError):
+                self.writer.fs.rm(self.path)
+
+    def _create(self, data: bytes) -> bool:
+        fs = self.writer.fs
+        fs.makedirs(self.path.rsplit("/", 1)[0] or "/", exist_ok=True)
+        if not self.writer.local:
+            if fs.exists(self.path):
+                return False
+            fs.pipe_file(self.path, data)
+            return True
+        tmp = f"{self.path}.{uuid.uuid4().hex}.partial"
+        with open(tmp, "wb") as f:
+            f.write(data)
+        try:
+            os.link(tmp, self.path)
+            return True
+        except FileExistsError:
+            return False
+        finally:
+            os.unlink(tmp)
+
+    def _read(self) -> dict | None:
+        try:
+            return json.loads(self.writer.fs.cat_file(self.path))
+        except (FileNotFoundError, ValueError):
+            return None
+
+    def _take_over(self, stale: dict | None) -> bool:
+        """Remove the stale lock ``stale`` unless another process replaced it meanwhile;
+        True when it was removed (by this process or another)."""
+        fs = self.writer.fs
+        aside = f"{self.path}.{uuid.uuid4().hex}.stale"
+        try:
+            fs.mv(self.path, aside)
+        except FileNotFoundError:
+            return False
+        try:
+            moved = json.loads(fs.cat_file(aside))
+        except ValueError:
+            moved = None
+        if moved != stale:  # a live run's fresh lock, taken between the read and the move: put it back
+            fs.mv(aside, self.path)
+            return False
+        fs.rm(aside)
+        return True
+
+
+def _process_start(pid: int) -> str | None:
+    """When process ``pid`` started, as an opaque string (boot id and start tick on Linux;
+    None where /proc does not tell), so that a pid reused by a later process is not mistaken
+    for the holder of a lock."""
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            boot = f.read().strip()
+        with open(f"/proc/{pid}/stat") as f:
+            stat = f.read()
+        return f"{boot}:{stat.rsplit(')', 1)[1].split()[19]}"
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(holder: dict) -> bool:
+    """The process that wrote lock ``holder`` is still running (assumed so on another host)."""
+    if holder.get("host") != socket.gethostname():
+        return True
+    pid = int(holder.get("pid", -1))
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # alive, another user's
+    started = holder.get("started")
+    return started is None or _process_start(pid) in (None, started)
+
+
+def _describe(holder: dict) -> str:
+    command = holder.get("command") or "?"
+    return f"pid {holder.get('pid')} on {holder.get('host')}, since {holder.get('since')}: {command}"
 
 
 def _protocols(fs) -> tuple[str, ...]:
@@ -566,15 +752,25 @@ class SceneStore:
         return out
 
 
-def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
+@contextlib.contextmanager
+def _own_files_ignored() -> Iterator[None]:
+    """Listing a group's members: the store's own files (the manifest, the staging folder
+    of a run in progress) are not zarr nodes, which zarr warns about."""
     import zarr
 
     with warnings.catch_warnings():
-        # the staging folder of a run in progress is not a zarr node
         warnings.simplefilter("ignore", zarr.errors.ZarrUserWarning)
-        for path, node in group.members(max_depth=None):
-            if isinstance(node, zarr.Array):
-                yield path, node
+        yield
+
+
+def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
+    import zarr
+
+    with _own_files_ignored():
+        members = list(group.members(max_depth=None))
+    for path, node in members:
+        if isinstance(node, zarr.Array):
+            yield path, node
 
 
 def open_store(path: str, storage_options: dict | None = None, *, allow_incomplete: bool = False) -> SceneStore:
@@ -615,12 +811,60 @@ def describe(group: "zarr.Group") -> dict:
     return {"attributes": group.attrs.asdict(), "arrays": arrays}
 
 
-def validate_store(path: str, storage_options: dict | None = None) -> list[str]:
-    """Every problem of the store at ``path``: schema, layout and content (empty = valid).
+@dataclass
+class StoreCheck:
+    """What :func:`check_store` found.
 
-    Content checks: layers are consistent with their NaNs (M1 = M2, M3 = M4, D3 only after
-    D1, classes and instances set exactly where a layer is), depths ordered and >= 0, classes
-    in 0..40, cameras finite and orthonormal, ids known, mesh offsets and faces in range.
+    kind     : ``"dataset"`` (written by render) or ``"prediction"`` (by predict)
+    problems : one line each, most telling first (empty: valid)
+    notes    : what was not checked, and why
+    """
+
+    path: str
+    kind: str
+    views: int
+    complete: bool
+    problems: list[str]
+    notes: list[str]
+
+    @property
+    def valid(self) -> bool:
+        return not self.problems
+
+    def summary(self) -> str:
+        """One line: valid, incomplete, or how many problems."""
+        if not self.complete:
+            return (f"{self.path}: incomplete: a run writing it is in progress or was interrupted; run the same "
+                    "command again to finish it")
+        what = f"{self.kind} store, {self.views} view{'s' if self.views != 1 else ''}"
+        if self.valid:
+            return f"{self.path}: valid ({what})"
+        n = len(self.problems)
+        return f"{self.path}: invalid, {n} problem{'s' if n != 1 else ''} ({what})"
+
+
+def validate_store(path: str, storage_options: dict | None = None) -> list[str]:
+    """Every problem of the store at ``path`` (empty = valid): :func:`check_store`'s."""
+    return check_store(path, storage_options).problems
+
+
+def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
+    """Check the store at ``path`` for what a reader relies on.
+
+    - the schema and layout (arrays, shapes, chunks, attributes), and that it is complete
+      (an incomplete store is reported as that one problem);
+    - its files: every file of the manifest present with the SHA-256 recorded when it was
+      written (a shard that is all fill values has no file, which the manifest records),
+      none that the run did not write, no staging folder or temporary files left;
+    - every shard decodable;
+    - the attributes consistent with the arrays (view ranges, ids, the failure log);
+    - content: cameras finite and rigid, classes in 0..40, failed views blank; in a dataset
+      store also the ground-truth rules (M1 = M2, M3 = M4, D3 only after D1, depths
+      ordered and >= 0, classes and instances set exactly where a layer is), which a
+      prediction store does not follow (noted, not checked);
+    - meshes: offsets from 0 to the row counts, faces within their view's vertices,
+      non-empty, non-degenerate meshes where the view has layers.
+    Raises :class:`SceneforgeError` when there is no store at ``path``.
     """
     from sceneforge import schemas
 
@@ -628,25 +872,68 @@ def validate_store(path: str, storage_options: dict | None = None) -> list[str]:
 
     group = _open_group(path, "r", storage_options)
     doc = describe(group)
-    problems = schemas.errors(doc, "store")
-    if problems:
-        return problems
     attrs = doc["attributes"]
-    if not attrs["complete"]:
-        problems.append("incomplete: the render run has not finished; run the same command again")
+    kind = "prediction" if "prediction" in attrs else "dataset"
+    n = attrs.get("views", 0) if isinstance(attrs.get("views"), int) else 0
+    check = StoreCheck(str(path), kind, n, bool(attrs.get("complete", True)), [], [])
+    check.problems += schemas.errors(doc, "store")
+    if check.problems:
+        return check
+    if not check.complete:
+        check.problems.append("incomplete: a run writing it is in progress or was interrupted; run the same "
+                              "command again to finish it")
+        return check
     try:
         config = DatasetConfig.from_dict(attrs["config"], what="config attribute")
     except SceneforgeError as e:
-        return problems + [str(e)]
-    n = attrs["views"]
-    problems += _check_layout(doc["arrays"], config, n)
-    problems += _check_attrs(attrs, n)
-    if problems:
-        return problems
+        check.problems.append(str(e))
+        return check
+    check.problems += _check_layout(doc["arrays"], config, n)
+    check.problems += _check_attrs(attrs, n)
+    if check.problems:
+        return check
+    files = StoreWriter(str(path), storage_options)
+    check.problems += _check_files(files, attrs, config, check.notes)
     store = SceneStore(group)
-    problems += _check_views(store, config)
+    problems, layers = _check_views(store, config, kind == "prediction", check.notes)
+    check.problems += problems
     if store.has_mesh:
-        problems += _check_meshes(store)
+        check.problems += _check_meshes(store, layers)
+    return check
+
+
+def _check_files(files: "StoreWriter", attrs: dict, config: "DatasetConfig", notes: list[str]) -> list[str]:
+    """The store's files against its manifest; what a run leaves behind."""
+    problems = []
+    if files.exists("_staging"):
+        problems.append("_staging/: a run's staging folder is left in a complete store (a second run wrote "
+                        "into it, or it was copied while a run was writing)")
+    if files.local:
+        partial = [p for p in files.fs.find(files.root) if p.endswith(".partial")]
+        if partial:
+            problems.append(f"{len(partial)} temporary file(s) of writes cut short (*.partial)")
+    record = attrs.get("manifest")
+    if record is None:
+        notes.append("no manifest (a store written before sceneforge recorded one): file hashes not checked")
+        return problems
+    data = files.get(record["file"])
+    if data is None or hashlib.sha256(data).hexdigest() != record["sha256"]:
+        return problems + [f"{record['file']}: {'missing' if data is None else 'not the one written with the store'}"]
+    manifest = json.loads(data)["files"]
+    missing, damaged, unexpected = [], [], []
+    for key, digest in manifest.items():
+        now = files.sha256(key)
+        if now != digest:
+            (missing if now is None else unexpected if digest is None else damaged).append(key)
+    listed = set(manifest)
+    for spec in array_specs(config):
+        unexpected += [key for key in files._chunk_files(spec.name) if key not in listed]
+    for what, keys in (("missing (written by the run, gone since)", missing),
+                       ("damaged (not the bytes written: truncated or changed)", damaged),
+                       ("not written by the run", unexpected)):
+        if keys:
+            shown = ", ".join(sorted(keys)[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
+            problems.append(f"{len(keys)} file(s) {what}: {shown}")
     return problems
 
 
@@ -709,30 +996,60 @@ def _per_view(mask: np.ndarray) -> np.ndarray:
     return mask.reshape(len(mask), -1).any(axis=1)
 
 
-def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
-    problems = []
+class _Findings:
+    """Views found breaking each rule, reported as one line per rule over the whole store."""
+
+    def __init__(self):
+        self.views: dict[str, list[int]] = {}
+
+    def add(self, rule: str, bad: np.ndarray, start: int) -> None:
+        hits = np.flatnonzero(bad)
+        if len(hits):
+            self.views.setdefault(rule, []).extend(int(start + i) for i in hits)
+
+    def lines(self) -> list[str]:
+        out = []
+        for rule, views in self.views.items():
+            shown = ", ".join(map(str, views[:5])) + (", ..." if len(views) > 5 else "")
+            out.append(f"{rule}: {len(views)} view{'s' if len(views) != 1 else ''} ({shown})")
+        return out
+
+
+def _check_views(store: SceneStore, config: "DatasetConfig", prediction: bool,
+                 notes: list[str]) -> tuple[list[str], np.ndarray | None]:
+    """The problems of the per-view arrays, and per view whether D1 and D5 are set
+    (``(n, 2) bool``, what :func:`_check_meshes` expects meshes for; None for predictions
+    or when a shard cannot be read)."""
+    problems, layers = [], []
     spans = {h["id"]: h["views"] for h in store.attrs["houses"] if h["status"] == "ok"}
     failed_views = {f["view"] for f in store.attrs["failures"] if f["stage"] == "view"}
     step = config.store.views_per_shard
     n_classes = len(NYU40_NAMES)
-
-    def report(what: str, bad: np.ndarray, start: int):
-        for i in np.flatnonzero(bad)[:3]:
-            problems.append(f"view {start + i}: {what}")
-        if bad.sum() > 3:
-            problems.append(f"... {int(bad.sum()) - 3} more views: {what}")
+    found = _Findings()
+    report = found.add
+    if prediction:
+        notes.append("a prediction store: the ground-truth rules (layer masks and order, instances) do not "
+                     "apply and were not checked")
 
     for start in range(0, len(store), step):
         stop = min(start + step, len(store))
-        a = {name: store.array(name)[start:stop] for name in store.names}
+        a, broken = {}, False
+        for name in store.names:
+            try:
+                a[name] = store.array(name)[start:stop]
+            except Exception as e:  # a damaged shard: zarr's codecs raise many kinds
+                problems.append(f"{name}: shard {start // step} (views {start}-{stop - 1}) cannot be decoded "
+                                f"({type(e).__name__}: {e})")
+                broken = True
+        if broken:
+            layers.append(np.zeros((stop - start, 2), bool))  # unknown: no mesh required
+            continue
         valid = a["valid"]
-        for i, (hid, ok) in enumerate(zip(a["house_id"], valid)):
-            span = spans.get(str(hid))
-            if span is None or not span[0] <= start + i < span[1]:
-                problems.append(f"view {start + i}: house_id {str(hid)!r} does not own this view")
-            if ok == ((start + i) in failed_views):
-                problems.append(f"view {start + i}: valid is {bool(ok)} but the failure log "
-                                f"{'lists' if ok else 'does not list'} it")
+        owners = np.array([(span := spans.get(str(hid))) is None or not span[0] <= start + i < span[1]
+                           for i, hid in enumerate(a["house_id"])])
+        report("house_id is not the house whose view range holds the view", owners, start)
+        logged = np.array([(start + i) in failed_views for i in range(stop - start)])
+        report("valid disagrees with the failure log", valid.astype(bool) == logged, start)
         report("camera_id < 0", a["camera_id"] < 0, start)
         K = a["K"]
         report("K is not finite with positive focal lengths",
@@ -742,8 +1059,18 @@ def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
         report("overhead_cam_to_world is not a rigid transform", v & _rigid_problems(a["overhead_cam_to_world"]),
                start)
         report("overhead_extent is not > 0", v & ~(a["overhead_extent"] > 0), start)
-        d, cat, inst = a["depth"], a["category"], a["instance"]
+        d, cat = a["depth"], a["category"]
         f = np.isfinite(d)
+        report("a class outside 0..40", _per_view(cat >= n_classes) | _per_view(a["overhead_category"] >= n_classes),
+               start)
+        od = a["overhead_depth"]
+        fo = np.isfinite(od)
+        report("a failed view holds data", ~v & (_per_view(f) | _per_view(fo)), start)
+        if "rgb" in a:
+            report("a failed view holds an RGB image", ~v & _per_view(a["rgb"] != 0), start)
+        if prediction:
+            continue
+        inst = a["instance"]
         report("D1 and D2 are not set on the same pixels (M1 != M2)", _per_view(f[:, 0] != f[:, 1]), start)
         report("D3 and D4 are not set on the same pixels (M3 != M4)", _per_view(f[:, 2] != f[:, 3]), start)
         report("D3 is set where D1 is not", _per_view(f[:, 2] & ~f[:, 0]), start)
@@ -752,50 +1079,73 @@ def _check_views(store: SceneStore, config: "DatasetConfig") -> list[str]:
             report("D2 before D1", _per_view(d[:, 1] < d[:, 0] - tol.stored_depth), start)
             report("D4 before D3", _per_view(d[:, 3] < d[:, 2] - tol.stored_depth), start)
             report("D3 before D2", _per_view(d[:, 2] < d[:, 1] - tol.same_instance_hit - tol.stored_depth), start)
-            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + tol.stored_depth), start)
-        report("a class outside 0..40", _per_view(cat >= n_classes) | _per_view(a["overhead_category"] >= n_classes),
-               start)
+            report("an object layer behind D5", _per_view(d[:, :4] > d[:, 4:] + tol.envelope_slack + tol.stored_depth),
+                   start)
         for k, layer in ((0, 0), (1, 2), (2, 4)):
             report(f"category of {LAYER_NAMES[layer]} set where {LAYER_NAMES[layer]} is NaN",
                    _per_view(~f[:, layer] & (cat[:, k] != 0)), start)
         for k, layer in ((0, 0), (1, 2)):
             report(f"instance of {LAYER_NAMES[layer]} is not set exactly where {LAYER_NAMES[layer]} is",
                    _per_view(f[:, layer] != (inst[:, k] >= 0)), start)
-        od = a["overhead_depth"]
-        fo = np.isfinite(od)
         report("overhead: D1 and D2 are not set on the same pixels", _per_view(fo[:, 0] != fo[:, 1]), start)
         report("overhead_height is not set exactly where overhead D1 is",
                _per_view(np.isfinite(a["overhead_height"]) != fo[:, 0]), start)
-        report("a failed view holds data", ~v & (_per_view(f) | _per_view(fo)), start)
-        if "rgb" in a:
-            report("a failed view holds an RGB image", ~v & _per_view(a["rgb"] != 0), start)
-    return problems
+        # what a ground-truth mesh must hold: objects wherever D1 is, the envelope wherever D5 is
+        layers.append(np.stack([_per_view(f[:, 0]), _per_view(f[:, 4])], axis=1))
+    complete = not prediction and sum(map(len, layers)) == len(store)
+    return problems + found.lines(), np.concatenate(layers) if complete and layers else None
 
 
-def _check_meshes(store: SceneStore) -> list[str]:
+def _check_meshes(store: SceneStore, layers: np.ndarray | None) -> list[str]:
     problems = []
+    found = _Findings()
     for kind in MESH_KINDS:
-        vo = store.array(f"mesh/{kind}/vertex_offsets")[:]
-        fo = store.array(f"mesh/{kind}/face_offsets")[:]
+        try:
+            vo = store.array(f"mesh/{kind}/vertex_offsets")[:]
+            fo = store.array(f"mesh/{kind}/face_offsets")[:]
+        except Exception as e:
+            problems.append(f"mesh/{kind}: the offsets cannot be decoded ({type(e).__name__}: {e})")
+            continue
         nv, nf = store.array(f"mesh/{kind}/vertices").shape[0], store.array(f"mesh/{kind}/faces").shape[0]
+        bad_offsets = False
         for name, off, total in (("vertex_offsets", vo, nv), ("face_offsets", fo, nf)):
             if off[0] != 0 or off[-1] != total or (np.diff(off) < 0).any():
                 problems.append(f"mesh/{kind}/{name}: not non-decreasing from 0 to {total}")
-        if problems:
+                bad_offsets = True
+        if bad_offsets:
             continue
-        faces = store.array(f"mesh/{kind}/faces")
+        vertices, faces = store.array(f"mesh/{kind}/vertices"), store.array(f"mesh/{kind}/faces")
         for start in range(0, len(store), 4096):
             stop = min(start + 4096, len(store))
-            f = faces[fo[start]:fo[stop]]
+            try:
+                f = np.asarray(faces[fo[start]:fo[stop]])
+                v = np.asarray(vertices[vo[start]:vo[stop]])
+            except Exception as e:
+                problems.append(f"mesh/{kind}: views {start}-{stop - 1} cannot be decoded ({type(e).__name__}: {e})")
+                continue
             owner = np.repeat(np.arange(start, stop), np.diff(fo[start:stop + 1]))
             limit = (vo[owner + 1] - vo[owner])[:, None]
-            bad = (f < 0) | (f >= limit)
-            if bad.any():
-                view = int(owner[np.flatnonzero(bad.any(axis=1))[0]])
-                problems.append(f"mesh/{kind}/faces: view {view} has face indices outside its vertices")
-        if (store.array(f"mesh/{kind}/instance")[:] < 0).any():
+            outside = ((f < 0) | (f >= limit)).any(axis=1)
+            found.add(f"mesh/{kind}/faces: face indices outside the view's vertices",
+                      np.bincount(owner[outside] - start, minlength=stop - start) > 0, start)
+            if layers is None:
+                continue
+            # faces index their view's rows: shift them to rows of this block's vertices
+            rows = np.where(outside[:, None], 0, f + (vo[owner] - vo[start])[:, None])
+            tri = v[rows] if len(v) else np.zeros((len(f), 3, 3), np.float32)
+            area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            solid = np.bincount(owner[area2 > 0] - start, minlength=stop - start) > 0
+            what = "D1" if kind == "objects" else "D5"
+            found.add(f"mesh/{kind}: empty or degenerate (zero-area faces only) in a view whose {what} is set",
+                      layers[start:stop, 0 if kind == "objects" else 1] & ~solid, start)
+        try:
+            negative = (store.array(f"mesh/{kind}/instance")[:] < 0).any()
+        except Exception as e:
+            problems.append(f"mesh/{kind}/instance: cannot be decoded ({type(e).__name__}: {e})")
+            continue
+        if negative:
             problems.append(f"mesh/{kind}/instance: negative instance index")
-    return problems
+    return problems + found.lines()
 
 
 def array_digests(path: str, storage_options: dict | None = None) -> dict[str, str]:
@@ -808,13 +1158,15 @@ def array_digests(path: str, storage_options: dict | None = None) -> dict[str, s
 
 def _digests(group: "zarr.Group") -> dict[str, str]:
     out = {}
-    for name, array in sorted(group.arrays()):
+    with _own_files_ignored():
+        arrays, groups = sorted(group.arrays()), sorted(group.groups())
+    for name, array in arrays:
         data = np.asarray(array[...])
         h = hashlib.sha256()
         h.update(f"{data.dtype.str}{data.shape}".encode())
         h.update(np.ascontiguousarray(data).tobytes() if data.dtype != object else repr(data.tolist()).encode())
         out[name] = h.hexdigest()
-    for name, sub in sorted(group.groups()):
+    for name, sub in groups:
         out.update({f"{name}/{key}": digest for key, digest in _digests(sub).items()})
     return out
 

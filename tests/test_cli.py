@@ -5,6 +5,7 @@ from __future__ import annotations
 from click.testing import CliRunner
 from sceneforge.cli.main import COMMANDS, cli
 
+from sceneforge.errors import EXIT_FAILURES, EXIT_INTERRUPTED
 from sceneforge.houses.formats.native import write_house
 
 
@@ -23,7 +24,7 @@ def test_inspect_prints_table_and_writes_preview(small_house, tmp_path):
     write_house(small_house, tmp_path / "houses" / "small")
     res = run("houses", "inspect", tmp_path / "houses", "--preview", tmp_path / "png")
     assert res.exit_code == 0, res.output
-    assert "small" in res.output and "chair" in res.output and "1 houses read, 0 failed" in res.output
+    assert "small" in res.output and "chair" in res.output and "1 house read, 0 failed" in res.output
     assert (tmp_path / "png" / "small.png").stat().st_size > 1000
 
 
@@ -33,10 +34,10 @@ def test_broken_house_is_one_line_and_others_complete(small_house, tmp_path):
         write_house(small_house, tmp_path / name)
     (tmp_path / "a" / "house.bin").unlink()
     res = run("houses", "inspect", tmp_path)
-    assert res.exit_code == 1
+    assert res.exit_code == EXIT_FAILURES
     failed = [line for line in res.output.splitlines() if line.startswith("failed:")]
     assert len(failed) == 1 and "house a" in failed[0] and "cannot read buffer" in failed[0]
-    assert "1 houses read, 1 failed" in res.output
+    assert "1 house read, 1 failed" in res.output
     assert "Traceback" not in res.output
 
 
@@ -44,3 +45,15 @@ def test_expected_error_is_one_red_line(tmp_path):
     res = run("houses", "inspect", tmp_path / "missing")
     assert res.exit_code == 1
     assert res.output.strip().splitlines() == [f"error: {tmp_path / 'missing'}: no such file or folder"]
+
+
+def test_ctrl_c_says_how_to_resume(monkeypatch, tmp_path):
+    import sceneforge.pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sceneforge.pipeline, "render_dataset", interrupted)
+    res = run("render", "bundled:toy", tmp_path / "out.zarr")
+    assert res.exit_code == EXIT_INTERRUPTED
+    assert res.output.strip().splitlines() == ["interrupted: run the same command again to resume"]

@@ -5,7 +5,9 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,7 +20,7 @@ from sceneforge.cli.main import cli
 
 from sceneforge.cameras import look_at_camera, write_pbrs_cameras
 from sceneforge.config import load_config
-from sceneforge.errors import SceneforgeError
+from sceneforge.errors import EXIT_FAILURES, SceneforgeError
 from sceneforge.houses.formats.native import write_house
 from sceneforge.pipeline import render_dataset
 from sceneforge.store import array_digests, open_store, validate_store
@@ -130,6 +132,56 @@ def test_sigkill_then_resume_gives_identical_bytes(reference, config_file, tmp_p
     assert files_of(out) == files_of(reference)
 
 
+def test_a_second_render_into_the_same_store_is_refused_and_the_first_completes(config_file, tmp_path):
+    out = tmp_path / "busy.zarr"
+    first = subprocess.Popen([sys.executable, "-c", CHILD, "bundled:toy", str(out), "--config", str(config_file)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / "busy.zarr.lock"
+    deadline = time.monotonic() + 120
+    while not lock.exists():
+        assert first.poll() is None and time.monotonic() < deadline, first.stderr.read()
+        time.sleep(0.002)
+    second = CliRunner().invoke(cli, ["render", "bundled:toy", str(out), "--config", str(config_file)])
+    assert first.poll() is None, "the first run ended before the second one tried"
+    assert second.exit_code == 1 and "Traceback" not in second.output
+    assert second.output.strip().splitlines() == [
+        f"error: {out}: another run is writing this store (pid {first.pid} on {socket.gethostname()}, since "
+        f"{json.loads(lock.read_text())['since']}: -c bundled:toy {out} --config {config_file}); wait for it "
+        "to end, or write elsewhere"]
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    assert not lock.exists()
+    assert validate_store(str(out)) == []
+    store = open_store(str(out))
+    for i in range(len(store)):
+        vertices, faces = store.mesh(i)["envelope"]
+        assert len(faces) > 0 and np.abs(vertices).max() > 0
+
+
+@pytest.mark.parametrize("executor", [["--workers", "2"], ["--workers", "2", "--scheduler", "local"]],
+                         ids=["process pool", "LocalCluster"])
+def test_workers_die_within_10_s_of_a_sigkilled_render(executor, small_house, tmp_path):
+    psutil = pytest.importorskip("psutil")
+    small_house.id = "one"
+    write_house(small_house, tmp_path / "houses" / "one")
+    render = subprocess.Popen([sys.executable, "-c", CHILD, str(tmp_path / "houses"), str(tmp_path / "out.zarr"),
+                               "--resolution", "16x12", "--overhead-resolution", "8", "--views-per-house", "2",
+                               "--no-rgb", *executor], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    workers = []
+    while not workers:
+        assert render.poll() is None and time.monotonic() < deadline, "the run ended before a worker started"
+        workers = [p for p in psutil.Process(render.pid).children(recursive=True)
+                   if "spawn_main" in " ".join(p.cmdline())]
+        time.sleep(0.05)
+    descendants = psutil.Process(render.pid).children(recursive=True)
+    render.send_signal(signal.SIGKILL)
+    render.wait()
+    gone, alive = psutil.wait_procs(descendants, timeout=10)
+    for p in alive:  # leave nothing behind, then fail
+        p.kill()
+    assert alive == [], f"alive 10 s after the run was killed: {[' '.join(p.cmdline())[:80] for p in alive]}"
+
+
 def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, tmp_path, monkeypatch):
     import sceneforge.store
 
@@ -156,7 +208,7 @@ def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, t
     assert files_of(out) == files_of(reference)
 
 
-def test_an_interrupted_run_does_not_resume_with_other_houses(small_house, tmp_path, monkeypatch):
+def test_an_interrupted_run_names_an_added_house_and_update_takes_it_in(small_house, tmp_path, monkeypatch):
     import shutil
 
     import sceneforge.store
@@ -164,18 +216,109 @@ def test_an_interrupted_run_does_not_resume_with_other_houses(small_house, tmp_p
     for name in ("a", "b"):
         small_house.id = name
         write_house(small_house, tmp_path / "houses" / name)
-    config = load_config(None, NO_RGB)
+    config = load_config(None, {**NO_RGB, "views_per_house": 2})
 
     def disk_full(*args):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(sceneforge.store, "write_shard", disk_full)
-    with pytest.raises(SceneforgeError, match="No space left"):
+    with pytest.raises(SceneforgeError, match="No space left") as failed:
         render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
+    assert "intact" not in str(failed.value)  # no shard was written
     monkeypatch.undo()
     shutil.copytree(tmp_path / "houses" / "a", tmp_path / "houses" / "a2")
-    with pytest.raises(SceneforgeError, match="unfinished run with another config or houses"):
+    with pytest.raises(SceneforgeError, match=r"houses changed since this run started \(added: a2\); pass --update"):
         render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
+    summary = render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config, update=True)
+    assert summary.changes.added == ("a2",) and summary.views == 6
+    render_dataset(str(tmp_path / "houses"), str(tmp_path / "fresh.zarr"), config)
+    assert array_digests(str(tmp_path / "out.zarr")) == array_digests(str(tmp_path / "fresh.zarr"))
+
+
+def _moved(house, dx: float):
+    """``house`` with every instance but the envelope moved ``dx`` m along x."""
+    for inst in house.instances:
+        if not inst.envelope:
+            inst.vertices = inst.vertices + np.array([dx, 0.0, 0.0], dtype=inst.vertices.dtype)
+    return house
+
+
+def test_changed_added_removed_and_fixed_houses_are_named_and_update_equals_a_fresh_render(small_house, tmp_path):
+    """A store of houses a, b, c and broken e; then b changes, c goes, d comes and e is fixed:
+    a re-run names all four and refuses; --update redoes exactly those and ends with the
+    arrays a fresh render of the new houses writes."""
+    import copy
+
+    houses, out = tmp_path / "houses", str(tmp_path / "out.zarr")
+    for name in ("a", "b", "c", "e"):
+        h = copy.deepcopy(small_house)
+        h.id = name
+        write_house(h, houses / name)
+    (houses / "e" / "house.bin").write_bytes(b"\0" * 10)
+    config = load_config(None, {**NO_RGB, "views_per_house": 3})  # 3 views per house, 2 per shard
+    first = render_dataset(str(houses), out, config)
+    assert first.failed_houses == ("e",) and first.views == 9
+
+    b = _moved(copy.deepcopy(small_house), 0.3)
+    b.id = "b"
+    write_house(b, houses / "b")
+    shutil.rmtree(houses / "c")
+    d = _moved(copy.deepcopy(small_house), -0.2)
+    d.id = "d"
+    write_house(d, houses / "d")
+    e = copy.deepcopy(small_house)
+    e.id = "e"
+    write_house(e, houses / "e")
+
+    res = CliRunner().invoke(cli, ["render", str(houses), out, "--config", str(_config_of(config, tmp_path))])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert res.output.strip().splitlines() == [
+        f"error: {out}: the houses changed since this store was rendered (changed: b; added: d; removed: c; "
+        "failed before and changed since: e); pass --update to redo exactly these houses, or --overwrite to "
+        "start over"]
+
+    summary = render_dataset(str(houses), out, config, update=True)
+    assert summary.changes.changed == ("b",) and summary.changes.added == ("d",)
+    assert summary.changes.removed == ("c",) and summary.changes.fixed == ("e",)
+    assert summary.failed_houses == () and summary.views == 12
+    # a's shard 0 (views 0, 1) is kept; every shard from view 2 on holds other views now
+    assert summary.shards_run == 5
+    fresh = str(tmp_path / "fresh.zarr")
+    render_dataset(str(houses), fresh, config)
+    assert array_digests(out) == array_digests(fresh)
+    assert validate_store(out) == []
+    assert open_store(out).attrs["houses"] == open_store(fresh).attrs["houses"]
+    assert render_dataset(str(houses), out, config).already_complete
+
+
+def _config_of(config, tmp_path) -> Path:
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(config.to_dict()))
+    return path
+
+
+def test_retry_failed_retries_failed_houses_only(small_house, tmp_path, monkeypatch):
+    import sceneforge.view
+
+    houses, out = _houses_with_failures(small_house, tmp_path / "houses"), str(tmp_path / "out.zarr")
+    config = load_config(None, {**NO_RGB, "views_per_house": 2})
+    real = sceneforge.view.compute_view
+
+    def flaky(house, camera, *args):
+        if house.id == "good" and flaky.fail:
+            raise MemoryError("out of memory")
+        return real(house, camera, *args)
+
+    flaky.fail = True
+    monkeypatch.setattr(sceneforge.view, "compute_view", flaky)
+    first = render_dataset(str(houses), out, config)
+    assert first.failed_houses == ("corrupt", "good", "no_floor")
+    assert render_dataset(str(houses), out, config).already_complete  # nothing changed: nothing to do
+    flaky.fail = False
+    summary = render_dataset(str(houses), out, config, retry_failed=True)
+    assert summary.retried == ("corrupt", "good", "no_floor") and summary.shards_run == 1
+    assert summary.failed_houses == ("corrupt", "no_floor")
+    assert all(open_store(out).view(i)["valid"] for i in range(2))
 
 
 def test_rerun_of_a_complete_store_does_nothing_and_other_config_is_refused(reference, tmp_path):
@@ -208,7 +351,7 @@ def test_failed_houses_are_logged_and_the_others_complete(small_house, tmp_path)
     out = tmp_path / "out.zarr"
     res = CliRunner().invoke(cli, ["render", str(houses), str(out), "--resolution", "32x24",
                                    "--overhead-resolution", "16", "--views-per-house", "2", "--no-rgb"])
-    assert res.exit_code == 1, res.output
+    assert res.exit_code == EXIT_FAILURES, res.output
     assert "Traceback" not in res.output
     assert "2 houses failed" in res.output
     failed = [line for line in res.output.splitlines() if line.startswith("failed:")]

@@ -14,11 +14,11 @@ from sceneforge.cli.main import cli
 from sceneforge import conventions, schemas
 from sceneforge.cameras import Camera
 from sceneforge.config import DatasetConfig, config_schema, load_config
-from sceneforge.errors import SceneforgeError
+from sceneforge.errors import EXIT_FAILURES, SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, bundled_toy_dir, discover, load
 from sceneforge.pipeline import render_dataset
 from sceneforge.preview import layer_points
-from sceneforge.store import conventions_attrs, describe, layout, open_store, validate_store
+from sceneforge.store import check_store, conventions_attrs, describe, layout, open_store, validate_store
 from sceneforge.view import compute_view
 
 #: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
@@ -184,12 +184,67 @@ def test_validate_reports_broken_content(store_copy):
     group["cam_to_world"][4] = pose
     group["mesh/objects/faces"][0, 0] = 10_000
     problems = validate_store(str(store_copy))
-    assert "view 1: D1 and D2 are not set on the same pixels (M1 != M2)" in problems
-    assert "view 2: a class outside 0..40" in problems
-    assert "view 4: cam_to_world is not a rigid transform" in problems
-    assert "mesh/objects/faces: view 0 has face indices outside its vertices" in problems
+    # the rewritten shards no longer hash as written, and each broken rule is one line
+    assert problems[0].startswith("4 file(s) damaged (not the bytes written: truncated or changed): ")
+    assert "D1 and D2 are not set on the same pixels (M1 != M2): 1 view (1)" in problems
+    assert "a class outside 0..40: 1 view (2)" in problems
+    assert "cam_to_world is not a rigid transform: 1 view (4)" in problems
+    assert "mesh/objects/faces: face indices outside the view's vertices: 1 view (0)" in problems
     res = CliRunner().invoke(cli, ["validate", str(store_copy)])
-    assert res.exit_code == 1 and res.output.count("invalid: ") == len(problems)
+    assert res.exit_code == EXIT_FAILURES
+    lines = res.output.strip().splitlines()
+    assert lines[0] == f"{store_copy}: invalid, {len(problems)} problems (dataset store, 6 views)"
+    assert [line.strip() for line in lines[1:]] == problems
+    quiet = CliRunner().invoke(cli, ["validate", str(store_copy), "--quiet"])
+    assert quiet.exit_code == EXIT_FAILURES and quiet.output.strip().splitlines() == lines[:1]
+
+
+def test_validate_finds_a_truncated_shard_a_missing_chunk_a_zeroed_mesh_and_leftover_staging(store_copy):
+    import zarr
+
+    assert validate_store(str(store_copy)) == []
+    depth = store_copy / "depth" / "c" / "1" / "0" / "0" / "0"
+    depth.write_bytes(depth.read_bytes()[:-100])  # a truncated shard
+    (store_copy / "category" / "c" / "0" / "0" / "0" / "0").unlink()  # a shard file gone
+    group = zarr.open_group(str(store_copy), mode="r+")
+    vertices = group["mesh/envelope/vertices"]
+    vertices[:] = np.zeros(vertices.shape, vertices.dtype)  # every envelope vertex read back as 0
+    (store_copy / "_staging" / "done").mkdir(parents=True)
+    problems = validate_store(str(store_copy))
+    assert problems[0].startswith("_staging/: a run's staging folder is left in a complete store")
+    # zarr writes no file for values that are all the fill value: the zeroed mesh has none left
+    assert "2 file(s) missing (written by the run, gone since): category/c/0/0/0/0, " \
+           "mesh/envelope/vertices/c/0/0" in problems
+    assert "1 file(s) damaged (not the bytes written: truncated or changed): depth/c/1/0/0/0" in problems
+    # views 4 and 5 are in the damaged depth shard: their layers are unknown
+    assert "mesh/envelope: empty or degenerate (zero-area faces only) in a view whose D5 is set: 4 views " \
+           "(0, 1, 2, 3)" in problems
+    assert any(p.startswith("depth: shard 1 (views 4-5) cannot be decoded") for p in problems), problems
+
+
+def test_validate_of_an_unfinished_store_is_one_line(store_copy):
+    import zarr
+
+    zarr.open_group(str(store_copy), mode="r+").attrs["complete"] = False
+    res = CliRunner().invoke(cli, ["validate", str(store_copy)])
+    assert res.exit_code == EXIT_FAILURES
+    assert res.output.strip().splitlines() == [
+        f"{store_copy}: incomplete: a run writing it is in progress or was interrupted; run the same command "
+        "again to finish it"]
+
+
+def test_validate_does_not_hold_a_prediction_store_to_ground_truth_rules(store_copy):
+    import zarr
+
+    group = zarr.open_group(str(store_copy), mode="r+")
+    depth = group["depth"][1]
+    depth[1] = depth[0] - 0.5  # D2 before D1: what a net may predict
+    group["depth"][1] = depth
+    group.attrs["prediction"] = {"stage": "depth"}
+    check = check_store(str(store_copy))
+    assert check.kind == "prediction"
+    assert [p for p in check.problems if "D2 before D1" in p] == []
+    assert any("ground-truth rules" in note for note in check.notes)
 
 
 def test_validate_reports_layout_problems(store_copy):
@@ -205,7 +260,7 @@ def test_validate_reports_layout_problems(store_copy):
 
 def test_validate_cli_accepts_a_good_store(store_path):
     res = CliRunner().invoke(cli, ["validate", str(store_path)])
-    assert res.exit_code == 0 and res.output.strip() == f"{store_path}: valid"
+    assert res.exit_code == 0 and res.output.strip() == f"{store_path}: valid (dataset store, 6 views)"
 
 
 def test_open_store_errors(store_copy, tmp_path):

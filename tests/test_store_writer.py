@@ -1,9 +1,13 @@
 """The store writer: create, write shards in any order, meshes, finalize, read back exactly;
-its atomic files; the array digests; and that no other module writes a store with zarr."""
+its atomic files; the array digests; its lock; and that no other module writes a store
+with zarr."""
 
 from __future__ import annotations
 
 import ast
+import json
+import os
+import socket
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -182,3 +186,42 @@ def test_only_the_store_module_imports_zarr():
     files = sorted((ROOT / "sceneforge").rglob("*.py")) + sorted((ROOT / "cli").rglob("*.py"))
     assert ROOT / "sceneforge" / "store.py" in files and len(files) > 20
     assert [str(p.relative_to(ROOT)) for p in files if _imports_zarr(p)] == ["sceneforge/store.py"]
+
+
+# ------------------------------------------------------------------------------- the lock
+
+
+def test_a_second_writer_is_refused_naming_the_holder_and_the_lock_goes_with_the_run(tmp_path):
+    from sceneforge.errors import StoreLockedError
+
+    url = str(tmp_path / "s.zarr")
+    with StoreWriter(url):
+        assert (tmp_path / "s.zarr.lock").is_file()
+        with pytest.raises(StoreLockedError, match=rf"another run is writing this store \(pid {os.getpid()} on "):
+            with StoreWriter(url):
+                pass
+    assert not (tmp_path / "s.zarr.lock").exists()
+    with pytest.raises(KeyboardInterrupt):  # released on Ctrl-C too
+        with StoreWriter(url):
+            raise KeyboardInterrupt
+    assert not (tmp_path / "s.zarr.lock").exists()
+
+
+def test_the_lock_of_a_dead_process_is_taken_over_with_a_warning(tmp_path, caplog):
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    lock = tmp_path / "s.zarr.lock"
+    lock.write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname(), "started": "boot:1",
+                                "since": "2024-01-01 00:00:00", "command": "sceneforge render a b"}))
+    with caplog.at_level("WARNING", logger="sceneforge.store"):
+        with StoreWriter(str(tmp_path / "s.zarr")):
+            assert json.loads(lock.read_text())["pid"] == os.getpid()
+    assert f"took over the lock of a run that is no longer running (pid {dead.pid} on" in caplog.text
+    # a live pid whose start time is not the recorded one is a reused pid: taken over too
+    lock.write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname(), "started": "another boot:1"}))
+    with StoreWriter(str(tmp_path / "s.zarr")):
+        pass
+    assert not lock.exists()

@@ -144,43 +144,43 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     from sceneforge.store import StoreWriter, open_store
 
     t0 = time.perf_counter()
-    writer = StoreWriter(out)
-    if writer.exists() and not overwrite:
-        raise SceneforgeError(f"{out} exists: pass --overwrite to replace it")
-    dev = resolve_device(device)
-    config, nets, stages = _load_nets(run, camera_run, dev)
+    with StoreWriter(out) as writer:  # the store's lock, for the whole run
+        if writer.exists() and not overwrite:
+            raise SceneforgeError(f"{out} exists: pass --overwrite to replace it")
+        dev = resolve_device(device)
+        config, nets, stages = _load_nets(run, camera_run, dev)
 
-    index = index_stores([store])
-    valid = index.view
-    source = open_store(store)
-    eft = None
-    if get_stage(config.stage).uses_eft:
-        eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
-    dataset = StoreDataset(index, ("rgb", "camera"))
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
+        index = index_stores([store])
+        valid = index.view
+        source = open_store(store)
+        eft = None
+        if get_stage(config.stage).uses_eft:
+            eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
+        dataset = StoreDataset(index, ("rgb", "camera"))
+        loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
 
-    render_config = _prediction_config(source.config)
-    n = len(source)
-    writer.create(render_config, source.attrs["houses_source"], n, replace=True)
-    shards = _Shards(writer, render_config, source, valid)
-    if progress:
-        progress.start("predicting views", len(valid), "views")
-    with torch.no_grad():
-        for batch in loader:
-            batch = {k: v.to(dev) for k, v in batch.items()}
-            outputs = _predict_batch(nets, eft, batch, camera_run is not None)
-            for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
-                shards.add(int(i), {name: value[row] for name, value in outputs.items()})
-            shards.flush()
-            if progress:
-                progress.advance(len(batch["index"]))
-    shards.flush(final=True)
+        render_config = _prediction_config(source.config)
+        n = len(source)
+        writer.create(render_config, source.attrs["houses_source"], n, replace=True)
+        shards = _Shards(writer, render_config, source, valid)
+        if progress:
+            progress.start("predicting views", len(valid), "views")
+        with torch.no_grad():
+            for batch in loader:
+                batch = {k: v.to(dev) for k, v in batch.items()}
+                outputs = _predict_batch(nets, eft, batch, camera_run is not None)
+                for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
+                    shards.add(int(i), {name: value[row] for name, value in outputs.items()})
+                shards.flush()
+                if progress:
+                    progress.advance(len(batch["index"]))
+        shards.flush(final=True)
 
-    prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
-                  "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                  "min_height": MIN_HEIGHT}
-    writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
-                    failures=source.attrs["failures"], prediction=prediction)
+        prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
+                      "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
+                      "min_height": MIN_HEIGHT}
+        writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
+                        failures=source.attrs["failures"], prediction=prediction)
     return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)
 
 

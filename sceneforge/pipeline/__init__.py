@@ -21,6 +21,12 @@ restarted with the same command skips every house record and shard whose marker 
 and whose files still hash as recorded, redoes the rest, and ends with the same bytes as an
 uninterrupted run: nothing written depends on timing, worker count or scheduler.
 
+One run writes a store at a time (the store's lock, :class:`~sceneforge.store.StoreLock`).
+Each house's plan record holds the SHA-256 of the files it was read from: a re-run names the
+houses that changed, were added or removed since and refuses, unless ``update`` (those
+houses are planned and rendered again, the rest kept: the store ends as a fresh run on the
+new houses would write it); ``retry_failed`` plans and renders the failed houses again.
+
 Execution: in-process (``workers=1``), a pool of spawned processes (``workers=N``) or a Dask
 distributed cluster (``scheduler="tcp://host:8786"``, or ``"local"`` for a LocalCluster).
 Each worker process keeps one renderer and the last house it loaded.
@@ -42,6 +48,7 @@ from typing import TYPE_CHECKING, Callable, Protocol
 from ..store import StoreWriter
 from .executors import executor
 from .finalize import finalize_store
+from .inputs import InputChanges
 from .plan import Plan, ViewPlan, plan_house, plan_houses
 from .shards import ShardTask, render_shard
 from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, write_error
@@ -69,6 +76,10 @@ class RenderSummary:
     failures : the store's failure log (``house``, ``stage``, ``reason``, ``view``)
     timings  : worker seconds spent this run per stage (``load``, ``ground_truth``,
                ``render``, ``write``), summed over views
+    seconds  : wall time of the run; ``render_seconds``: of its rendering step alone
+               (``views_rendered`` views), the rate the progress bar shows
+    changes  : the houses that changed since the store (or the unfinished run) was made,
+               redone with ``update``; ``retried``: the failed houses retried
     """
 
     path: str
@@ -81,6 +92,10 @@ class RenderSummary:
     seconds: float
     timings: dict[str, float] = field(default_factory=dict)
     already_complete: bool = False
+    views_rendered: int = 0
+    render_seconds: float = 0.0
+    changes: InputChanges = InputChanges()
+    retried: tuple[str, ...] = ()
 
 
 def render_dataset(
@@ -91,16 +106,22 @@ def render_dataset(
     workers: int = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
+    update: bool = False,
+    retry_failed: bool = False,
     storage_options: dict | None = None,
     progress: Progress | None = None,
 ) -> RenderSummary:
     """Render every house under ``houses`` into the store at ``out`` (resuming it if a run with
     the same config and houses was interrupted there).
 
-    houses : anything :func:`~sceneforge.houses.discover` takes (a folder, ``bundled:toy``, ...)
-    out    : local path or fsspec URL of the store
-    Raises :class:`SceneforgeError` for an unusable destination or a failed write; houses that
-    fail are recorded in the store's failure log and the summary.
+    houses       : anything :func:`~sceneforge.houses.discover` takes (a folder, ``bundled:toy``, ...)
+    out          : local path or fsspec URL of the store
+    update       : when houses changed, were added or removed since the store (or the
+                   unfinished run) was made, redo exactly those (else that is refused)
+    retry_failed : plan and render the houses that failed again
+    Raises :class:`SceneforgeError` for an unusable destination, a store another run is
+    writing, changed houses without ``update``, or a failed write; houses that fail are
+    recorded in the store's failure log and the summary.
     """
     from ..houses import discover
 
@@ -108,56 +129,75 @@ def render_dataset(
     sources = discover(houses, config.houses.format)
     writer = StoreWriter(out, storage_options)
     try:
-        state = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite)
+        with writer:
+            prep = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite=overwrite,
+                           update=update, retry_failed=retry_failed)
+            if prep.state == "complete":
+                writer.rm(STAGING)
+                writer.remove_partials()
+                attrs = writer.attrs()
+                return _summary(writer, attrs["houses"], attrs["failures"], attrs["views"], config, t_start,
+                                already_complete=True)
+            with executor(workers, scheduler) as run:
+                plan = Plan.from_records(plan_houses(writer, sources, config, run, progress))
+                created = writer.get_json(CREATED_KEY)
+                if created != {"views": len(plan.views)}:
+                    if created is None:
+                        writer.create(config, str(houses), len(plan.views))
+                    else:  # an update: the shards that keep their views stay
+                        writer.resize(config, len(plan.views))
+                    writer.put_json(CREATED_KEY, {"views": len(plan.views)})
+                rendered = _render_shards(writer, plan, sources, config, run, progress)
+            provenance, failures = finalize_store(writer, plan, config, str(houses), rendered.markers)
     except OSError as e:
         raise write_error(writer, e) from None
-    if state == "complete":
-        writer.rm(STAGING)
-        writer.remove_partials()
-        attrs = writer.attrs()
-        return _summary(writer, attrs["houses"], attrs["failures"], attrs["views"], config, 0, t_start, {},
-                        already_complete=True)
+    return _summary(writer, provenance, failures, len(plan.views), config, t_start, rendered, prep)
 
-    try:
-        with executor(workers, scheduler) as run:
-            plan = Plan.from_records(plan_houses(writer, sources, config, run, progress))
-            if writer.get_json(CREATED_KEY) != {"views": len(plan.views)}:
-                writer.create(config, str(houses), len(plan.views))
-                writer.put_json(CREATED_KEY, {"views": len(plan.views)})
-            markers, shards_run, timings = _render_shards(writer, plan, sources, config, run, progress)
-        provenance, failures = finalize_store(writer, plan, config, str(houses), markers)
-    except OSError as e:
-        raise write_error(writer, e) from None
-    return _summary(writer, provenance, failures, len(plan.views), config, shards_run, t_start, timings)
+
+@dataclass
+class _Rendered:
+    """What step 3 did: every shard's marker in shard order, the shards and views rendered
+    now, their wall seconds and their worker seconds per stage."""
+
+    markers: list[dict]
+    shards: int
+    views: int
+    seconds: float
+    timings: dict[str, float]
 
 
 def _render_shards(writer: StoreWriter, plan: Plan, sources: list["HouseSource"], config: "DatasetConfig",
-                   run: Callable, progress: Progress | None) -> tuple[list[dict], int, dict[str, float]]:
-    """Step 3 for every shard whose staged marker is not intact. Returns every shard's
-    marker in shard order, how many shards were rendered and their worker seconds per stage."""
+                   run: Callable, progress: Progress | None) -> _Rendered:
+    """Step 3 for every shard whose staged marker is not intact."""
     shards = plan.shards(config.store.views_per_shard)
+    digests = [plan.digest(a, b) for a, b in shards]
     markers = {s: writer.get_json(marker_key(s)) for s in range(len(shards))}
-    todo = [s for s, m in markers.items() if not intact(writer, m, shards[s])]
+    todo = [s for s, m in markers.items() if not intact(writer, m, shards[s], digests[s])]
+    views = sum(shards[s][1] - shards[s][0] for s in todo)
     if progress:
-        progress.start("rendering views", len(plan.views), "views",
-                       done=sum(b - a for s, (a, b) in enumerate(shards) if s not in todo))
+        progress.start("rendering views", len(plan.views), "views", done=len(plan.views) - views)
     tasks = [ShardTask(writer.zarr_url, writer.storage_options, s, plan.views[a:b],
-                       {v.house: sources[v.house] for v in plan.views[a:b]}, config)
-             for s, (a, b) in enumerate(shards) if s in todo]
+                       {v.house: sources[v.house] for v in plan.views[a:b]}, config, digests[s])
+             for s, (a, b) in enumerate(shards) if s in set(todo)]
     timings = Counter()
+    t0 = time.perf_counter()
     for marker in run(render_shard, tasks):
         timings.update(marker.pop("timings"))
         markers[marker["shard"]] = marker
         if progress:
             progress.advance(marker["views"][1] - marker["views"][0])
-    return [markers[s] for s in range(len(shards))], len(tasks), dict(timings)
+    return _Rendered([markers[s] for s in range(len(shards))], len(tasks), views, time.perf_counter() - t0,
+                     dict(timings))
 
 
-def _summary(writer, houses, failures, n_views, config, shards_run, t_start, timings, already_complete=False):
+def _summary(writer, houses, failures, n_views, config, t_start, rendered: _Rendered | None = None,
+             prep=None, already_complete=False) -> RenderSummary:
     failed = tuple(dict.fromkeys(f["house"] for f in failures))
     return RenderSummary(
         path=writer.url, views=n_views, houses=sum(h["status"] == "ok" for h in houses),
         failed_houses=failed, failures=failures, shards=math.ceil(n_views / config.store.views_per_shard),
-        shards_run=shards_run, seconds=time.perf_counter() - t_start, timings=timings,
-        already_complete=already_complete,
+        shards_run=rendered.shards if rendered else 0, seconds=time.perf_counter() - t_start,
+        timings=rendered.timings if rendered else {}, already_complete=already_complete,
+        views_rendered=rendered.views if rendered else 0, render_seconds=rendered.seconds if rendered else 0.0,
+        changes=prep.changes if prep else InputChanges(), retried=prep.retried if prep else (),
     )

@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import sys
+import threading
+import time
 from typing import Callable, Iterable, Iterator
 
 from ..errors import MissingDependencyError, SceneforgeError
@@ -23,6 +27,33 @@ def _worker_env(workers: int) -> dict[str, str]:
     from ..raytrace import THREADS_ENV
 
     return {**_WORKER_ENV, THREADS_ENV: str(max(1, (os.cpu_count() or 1) // workers))}
+
+
+#: prctl(2) option: the signal the kernel sends this process when its parent ends
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent: int, poll: float = 1.0) -> None:
+    """Make this (worker) process end when process ``parent`` ends, however it ends (SIGKILL
+    included): on Linux the kernel kills it at once (``PR_SET_PDEATHSIG``); everywhere a
+    daemon thread also checks every ``poll`` seconds that its parent is still ``parent``.
+    Without it a pool's workers outlive a killed run: each holds both ends of its pipes,
+    so none sees the parent go."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent ended before the line above
+        os._exit(1)
+
+    def watch():
+        while True:
+            time.sleep(poll)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
 
 
 @contextlib.contextmanager
@@ -48,7 +79,9 @@ def executor(workers: int = 1, scheduler: str | None = None) -> Iterator[Callabl
 
     Local processes are started with ``spawn`` (forking a process that holds an OpenGL or
     Open3D context is unsafe) and live as long as the block, so each keeps its renderer and
-    last house across tasks.
+    last house across tasks. They end with this process, whatever ends it
+    (:func:`die_with_parent`; a LocalCluster's worker processes watch their nanny, which
+    lives in this process, the same way).
     """
     if workers < 1:
         raise SceneforgeError(f"workers must be at least 1, got {workers}")
@@ -83,7 +116,9 @@ def _process_pool(workers: int):
             for future in futures:
                 future.cancel()
 
-    with _environ(_worker_env(workers)), ProcessPoolExecutor(workers, multiprocessing.get_context("spawn")) as pool:
+    context = multiprocessing.get_context("spawn")
+    with _environ(_worker_env(workers)), ProcessPoolExecutor(workers, context, initializer=die_with_parent,
+                                                             initargs=(os.getpid(),)) as pool:
         yield run
 
 

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from ..config import DatasetConfig
 
 #: the planning record's entries that the store's ``houses`` attribute keeps
-PROVENANCE = ("id", "format", "path", "views", "instances", "triangles", "rooms", "warnings", "cameras")
+PROVENANCE = ("id", "format", "path", "views", "instances", "triangles", "rooms", "warnings", "cameras", "inputs")
 
 
 def finalize_store(writer: StoreWriter, plan: Plan, config: "DatasetConfig", houses: str,
@@ -28,7 +28,8 @@ def finalize_store(writer: StoreWriter, plan: Plan, config: "DatasetConfig", hou
         counts = np.concatenate([np.array(m["mesh_counts"], dtype=np.int64).reshape(-1, 2, 2) for m in markers]
                                 or [np.zeros((0, 2, 2), np.int64)])
         writer.write_meshes(config, counts, mesh_parts(writer, markers))
-    writer.finalize(config, houses, len(plan.views), houses=provenance, failures=failures)
+    files = {key: digest for m in markers for key, digest in m["files"].items() if not key.startswith(STAGING)}
+    writer.finalize(config, houses, len(plan.views), houses=provenance, failures=failures, files=files)
     writer.rm(STAGING)
     return provenance, failures
 

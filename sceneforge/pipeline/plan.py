@@ -3,6 +3,8 @@ views house by house."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import zlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
@@ -10,6 +12,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from ..errors import SceneforgeError
+from .inputs import fingerprint, reads
 from .staging import house_key
 from .worker import WORKER
 
@@ -38,6 +41,17 @@ def sample_house_cameras(house, config: "DatasetConfig", tracer=None):
     return sample_cameras(house, config.views_per_house, _house_rng(config.seed, house.id), config.sampler, tracer)
 
 
+def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", record: dict):
+    """Load ``source`` afresh, recording the files its loader read in ``record["inputs"]``
+    (:mod:`.inputs`), whether the load succeeds or raises."""
+    WORKER.forget_house()  # a house cached by an earlier task would be read from no file
+    with reads() as paths:
+        try:
+            return WORKER.load(source, config)
+        finally:
+            record["inputs"] = fingerprint(paths)
+
+
 def _file_cameras(source: "HouseSource", config: "DatasetConfig"):
     """Cameras of ``<cameras>/<house id>/room_camera.txt`` and their 0-based line numbers."""
     from pathlib import Path
@@ -63,7 +77,7 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
     record = {"id": source.id, "format": source.format, "path": str(source.path)}
     stage = "load"
     try:
-        house = WORKER.load(source, config)
+        house = _load_recording_inputs(source, config, record)
         record.update(instances=len(house.instances), triangles=house.triangle_count, rooms=len(house.rooms),
                       warnings=list(house.warnings))
         stage = "cameras"
@@ -95,12 +109,12 @@ def plan_houses(writer: "StoreWriter", sources: list["HouseSource"], config: "Da
                 progress: "Progress | None") -> list[dict]:
     """Step 1 for every house, in parallel through ``run``; a house whose record is staged
     already (an interrupted run) is not planned again. Returns the records in ``sources`` order."""
-    records = {i: writer.get_json(house_key(i)) for i in range(len(sources))}
+    records = {i: writer.get_json(house_key(s.id)) for i, s in enumerate(sources)}
     todo = [i for i, r in records.items() if r is None]
     if progress:
         progress.start("planning houses", len(sources), "houses", done=len(sources) - len(todo))
     for i, record in run(_plan_indexed, [(i, sources[i], config) for i in todo]):
-        writer.put_json(house_key(i), record)
+        writer.put_json(house_key(sources[i].id), record)
         records[i] = record
         if progress:
             progress.advance(1)
@@ -147,3 +161,14 @@ class Plan:
     def shards(self, per_shard: int) -> list[tuple[int, int]]:
         n = len(self.views)
         return [(s, min(s + per_shard, n)) for s in range(0, n, per_shard)]
+
+    def digest(self, start: int, stop: int) -> str:
+        """SHA-256 (hex) of what views ``start:stop`` are made from: per view its index,
+        house id, the house's input fingerprint, camera id and camera. A shard's marker
+        keeps it: the shard is reused only where the plan gives the same digest."""
+        h = hashlib.sha256()
+        for v in self.views[start:stop]:
+            rec = self.houses[v.house]
+            h.update(json.dumps([v.index, rec["id"], rec.get("inputs"), v.camera_id, v.K.tolist(),
+                                 v.cam_to_world.tolist()], sort_keys=True).encode())
+        return h.hexdigest()

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from ..errors import SceneforgeError
 from ..store import StoreWriter
 from .plan import ViewPlan
-from .staging import marker_key, mesh_key, put_mesh_part, write_error
+from .staging import marker_key, mesh_key, put_mesh_part
 from .worker import WORKER
 
 if TYPE_CHECKING:
@@ -29,6 +29,7 @@ class ShardTask:
     views: tuple[ViewPlan, ...]
     houses: dict[int, "HouseSource"]  # the views' houses by index
     config: "DatasetConfig"
+    plan: str  # the digest of the shard's plan (Plan.digest), kept in its marker
 
 
 def render_shard(task: ShardTask) -> dict:
@@ -37,8 +38,9 @@ def render_shard(task: ShardTask) -> dict:
     per stage.
 
     A view whose ground truth or RGB fails is written as fill values with ``valid`` false
-    and listed in the marker's failures; failing to write, or to start the renderer, raises
-    :class:`SceneforgeError`.
+    and listed in the marker's failures; failing to start the renderer raises
+    :class:`SceneforgeError`, failing to write the :class:`OSError` (the run names the store
+    and what resumes).
     """
     try:
         views, meshes, failures, timings = _compute_views(task)
@@ -92,15 +94,13 @@ def _write(task: ShardTask, views: list[dict], meshes: list, failures: list[dict
     from ..store import mesh_part
 
     writer = StoreWriter(task.url, task.storage_options)
-    try:
-        files = {key: writer.sha256(key) for key in writer.write_shard(task.shard, views)}
-        marker = {"shard": task.shard, "views": [task.views[0].index, task.views[-1].index + 1],
-                  "files": files, "failures": failures}
-        if task.config.view.with_mesh:
-            part = mesh_part(meshes)
-            files[mesh_key(task.shard)] = put_mesh_part(writer, task.shard, part)
-            marker["mesh_counts"] = part["counts"].tolist()
-        writer.put_json(marker_key(task.shard), marker)
-    except OSError as e:
-        raise write_error(writer, e) from None
+    writer.write_shard(task.shard, views)
+    files = dict(writer.files)
+    marker = {"shard": task.shard, "views": [task.views[0].index, task.views[-1].index + 1], "plan": task.plan,
+              "files": files, "failures": failures}
+    if task.config.view.with_mesh:
+        part = mesh_part(meshes)
+        files[mesh_key(task.shard)] = put_mesh_part(writer, task.shard, part)
+        marker["mesh_counts"] = part["counts"].tolist()
+    writer.put_json(marker_key(task.shard), marker)
     return marker

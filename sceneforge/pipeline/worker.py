@@ -31,6 +31,10 @@ class Worker:
             self.house_key = key
         return self.house
 
+    def forget_house(self) -> None:
+        """Drop the cached house, so that the next :meth:`load` reads its files again."""
+        self.house_key = self.house = self.tracer = None
+
     def tracer_of(self, house):
         from ..raytrace import HouseTracer
 
