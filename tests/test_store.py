@@ -147,6 +147,7 @@ def test_reading_a_view_back_equals_what_was_computed(store_path):
             np.testing.assert_array_equal(v["overhead_cam_to_world"], gt.overhead_camera.cam_to_world)
             np.testing.assert_array_equal(v["overhead_params"], gt.overhead_camera.params)
             assert v["overhead_extent"] == gt.overhead_camera.half_extent and bool(v["valid"])
+            assert str(v["overhead_floor_source"]) == gt.overhead_camera.floor_source == "room floor"
             np.testing.assert_array_equal(v["rgb"], renderer.render(house, camera))
             mesh = store.mesh(i)
             for kind in ("objects", "envelope"):

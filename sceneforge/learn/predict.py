@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 MIN_HEIGHT = 0.05
 #: arrays copied from the source store (the overhead camera ones unless a camera run places them)
 COPIED = ("house_id", "camera_id", "valid", "K", "cam_to_world", "overhead_cam_to_world", "overhead_params",
-          "overhead_extent")
+          "overhead_extent", "overhead_floor_source")
 
 
 @dataclass(frozen=True)
