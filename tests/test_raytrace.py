@@ -10,9 +10,8 @@ import trimesh
 
 from sceneforge.cameras import CameraSamplerConfig, sample_cameras
 from sceneforge.conventions import tol
-from sceneforge.errors import HouseError
+from sceneforge.errors import HouseError, MissingDependencyError
 from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
-from sceneforge.errors import MissingDependencyError
 from sceneforge.raytrace import HouseTracer, Rays, default_backend
 from sceneforge.raytrace import embree_backend as embree
 from sceneforge.raytrace.reference import moller_trumbore
