@@ -353,6 +353,12 @@ def test_embree_engine_equals_open3d_engine_bit_for_bit(seed):
     np.testing.assert_array_equal(a.closing.face, b.closing.face)
     np.testing.assert_array_equal(a.closing.t, b.closing.t)
     assert_same_hits(ours.frontal_hits(origins, directions), theirs.frontal_hits(origins, directions))
+    # closing hits nearer than envelope_near looked for again past it (the overhead view)
+    a, b = (tr.frontal_query(origins, directions, envelope_near=0.8) for tr in (ours, theirs))
+    assert_same_hits(a.objects, b.objects)
+    for name in ("t", "instance", "triangle", "front_facing", "face"):
+        np.testing.assert_array_equal(getattr(a.closing, name), getattr(b.closing, name), err_msg=name)
+    assert (np.nan_to_num(a.closing.t, nan=1.0) >= 0.8).all()
     np.testing.assert_array_equal(ours.first_hit(origins, directions).face, theirs.first_hit(origins, directions).face)
     # the engines' raw crossings (the Backend interface), cut like a frontal query's
     rays = Rays.check(origins, directions)

@@ -502,6 +502,10 @@ class HouseTracer:
                               (default: the house's envelope); the overhead view passes floors
         envelope_near       : envelope hits nearer than this are ignored (metres along the ray)
         """
+        frontal = getattr(self.backend, "frontal", None)
+        if frontal is not None:  # the engine does both passes itself, ray by ray
+            rays = Rays.check(origins, directions)
+            return frontal(rays, *self._frontal_masks(objects, envelope), envelope_near)
         rays, objects, closing, cutoff = self._frontal_setup(origins, directions, objects, envelope, envelope_near)
         return FrontalHits(self._hits(rays, objects, cutoff), closing)
 
@@ -519,12 +523,18 @@ class HouseTracer:
         closing hits and the cut-off (n,) (closing distance + slack; inf where nothing
         closes the ray)."""
         rays = Rays.check(origins, directions)
-        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
-        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        objects, envelope = self._frontal_masks(objects, envelope)
         closing = self._closing(rays, envelope, envelope_near)
         cutoff = closing.t + tol.envelope_slack
         cutoff[np.isnan(cutoff)] = np.inf
         return rays, objects, closing, cutoff
+
+    def _frontal_masks(self, objects, envelope) -> tuple[np.ndarray, np.ndarray]:
+        """The (n_instances,) bool object and closing masks of a frontal query (defaults:
+        the non-envelope instances and the envelope)."""
+        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
+        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        return objects, envelope
 
     def _closing(self, rays: Rays, envelope: np.ndarray, envelope_near: float) -> FirstHit:
         """Each ray's first hit among the ``envelope`` instances at least ``envelope_near``

@@ -388,6 +388,23 @@ PyObject* engine_add_scene(EngineObject* self, PyObject* args) {
     return PyLong_FromSsize_t(static_cast<Py_ssize_t>(self->scenes->size()) - 1);
 }
 
+// The nearest face (house index) of one ray over the scenes, -1 where none; at equal
+// engine distance the earlier scene's hit stays (as the Open3D engine's intersect_first).
+int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d) {
+    float nearest = std::numeric_limits<float>::infinity();
+    int64_t face = -1;
+    for (const Scene* s : scenes) {
+        RTCRayHit rh;
+        set_ray(rh, e, o, d, std::numeric_limits<float>::infinity());
+        intersect_nearest(s, rh);
+        if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID && rh.ray.tfar < nearest) {
+            nearest = rh.ray.tfar;
+            face = s->face_base[rh.hit.geomID] + rh.hit.primID;
+        }
+    }
+    return face;
+}
+
 // first(scene_ids, n, origins, directions) -> bytearray (n,) i8: the nearest face of each
 // ray over the scenes (-1: none); at equal engine distance the earlier scene's hit stays.
 PyObject* engine_first(EngineObject* self, PyObject* args) {
@@ -404,22 +421,33 @@ PyObject* engine_first(EngineObject* self, PyObject* args) {
     Py_BEGIN_ALLOW_THREADS
     parallel_blocks((n + kBlock - 1) / kBlock, self->threads, [&](int64_t b) {
         const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
-        for (int64_t r = b * kBlock; r < hi; ++r) {
-            float nearest = std::numeric_limits<float>::infinity();
-            face[r] = -1;
-            for (const Scene* s : scenes) {
-                RTCRayHit rh;
-                set_ray(rh, self, rays.origin(r), rays.direction(r), std::numeric_limits<float>::infinity());
-                intersect_nearest(s, rh);
-                if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID && rh.ray.tfar < nearest) {
-                    nearest = rh.ray.tfar;
-                    face[r] = s->face_base[rh.hit.geomID] + rh.hit.primID;
-                }
-            }
-        }
+        for (int64_t r = b * kBlock; r < hi; ++r) face[r] = nearest_face(self, scenes, rays.origin(r), rays.direction(r));
     });
     Py_END_ALLOW_THREADS
     return out;
+}
+
+// One ray's closing hit, as HouseTracer._closing and _first_hit make it from an engine's
+// nearest faces: the nearest face among the closing scenes; where its plane distance is
+// below `near`, the nearest face seen again from `near` along the ray (origin + near * d,
+// as numpy computes it); then the plane distance and cosine of that face from the ray's
+// own origin. t is NaN and cos 0 where nothing closes the ray.
+void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d,
+                 double near, const Collector& planes, int64_t& face, double& t, double& cos) {
+    face = nearest_face(e, scenes, o, d);
+    auto plane = [&](int64_t f) {
+        const double numerator = planes.offset[f] - (planes.normal_x[f] * o[0] + planes.normal_y[f] * o[1] +
+                                                     planes.normal_z[f] * o[2]);
+        cos = planes.normal_x[f] * d[0] + planes.normal_y[f] * d[1] + planes.normal_z[f] * d[2];
+        t = numerator / cos;
+    };
+    if (face >= 0) plane(face);
+    if (near > 0 && face >= 0 && t < near) {
+        const double moved[3] = {o[0] + near * d[0], o[1] + near * d[1], o[2] + near * d[2]};
+        face = nearest_face(e, scenes, moved, d);
+        if (face >= 0) plane(face);
+    }
+    if (face < 0) t = std::numeric_limits<double>::quiet_NaN(), cos = 0.0;
 }
 
 struct BlockHits {
@@ -429,20 +457,26 @@ struct BlockHits {
     double t_max = -std::numeric_limits<double>::infinity();
 };
 
-// collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw)
+// collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw
+//         [, closing_ids, near, slack])
 //   cutoff : None or (n,) f8; hits farther along ray r than cutoff[r] are dropped, and the
 //            traversal stops at cutoff[r] + margin (engine distance)
 //   raw    : True: every crossing, unordered -> (ray i8, face i8) bytearrays
 //            False: the CSR arrays of Hits -> (offsets i8, t f8, instance i4, triangle i8,
 //            front_facing bool) bytearrays
+//   closing_ids : with cutoff None, the scenes that close a ray: each ray's closing hit is
+//            found first (closing_hit, from `near` on) and its cutoff is the closing
+//            distance + slack (inf where none); five more bytearrays follow the Hits ones,
+//            the closing hits: face i8, t f8, instance i4, triangle i8, front_facing bool
 PyObject* engine_collect(EngineObject* self, PyObject* args) {
-    PyObject *ids, *origins, *directions, *cutoff_obj;
+    PyObject *ids, *origins, *directions, *cutoff_obj, *closing_obj = Py_None;
     Py_ssize_t n;
-    double margin, tol;
+    double margin, tol, near = 0.0, slack = 0.0;
     int raw;
-    if (!PyArg_ParseTuple(args, "OnOOOddp", &ids, &n, &origins, &directions, &cutoff_obj, &margin, &tol, &raw))
+    if (!PyArg_ParseTuple(args, "OnOOOddp|Odd", &ids, &n, &origins, &directions, &cutoff_obj, &margin, &tol, &raw,
+                          &closing_obj, &near, &slack))
         return nullptr;
-    std::vector<const Scene*> scenes;
+    std::vector<const Scene*> scenes, closing_scenes;
     Buffer bo, bd, bc;
     RayRows rays;
     if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
@@ -451,6 +485,14 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         if (!get_buffer(cutoff_obj, bc, sizeof(double), n, "cutoff")) return nullptr;
         cutoff = static_cast<const double*>(bc.view.buf);
     }
+    const bool closing = closing_obj != Py_None;
+    if (closing && (cutoff || raw)) {
+        PyErr_SetString(PyExc_ValueError, "closing scenes need cutoff None and raw False");
+        return nullptr;
+    }
+    if (closing && !get_scene_ids(self, closing_obj, closing_scenes)) return nullptr;
+    std::vector<int64_t> closing_face(closing ? n : 0);
+    std::vector<double> closing_t(closing ? n : 0), closing_cos(closing ? n : 0);
     const int64_t n_blocks = (n + kBlock - 1) / kBlock;
     std::vector<BlockHits> blocks(n_blocks);
     const double inf = std::numeric_limits<double>::infinity();
@@ -470,7 +512,12 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             const double* d = rays.direction(r);
             c.ox = o[0], c.oy = o[1], c.oz = o[2];
             c.dx = d[0], c.dy = d[1], c.dz = d[2];
-            c.cutoff = cutoff ? cutoff[r] : inf;
+            if (closing) {
+                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], closing_cos[r]);
+                c.cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
+            } else {
+                c.cutoff = cutoff ? cutoff[r] : inf;
+            }
             // what the Open3D engine keeps of its float32 distances: t <= cutoff + margin
             c.limit32 = c.cutoff + margin;
             float tfar = static_cast<float>(c.limit32);
@@ -602,7 +649,21 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             ++k;
         }
     }
-    return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
+    if (!closing) return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
+    std::vector<int32_t> c_inst(n);
+    std::vector<int64_t> c_tri(n);
+    std::vector<char> c_front(n);
+    for (int64_t r = 0; r < n; ++r) {
+        const int64_t f = closing_face[r];
+        c_inst[r] = f >= 0 ? face_instance[f] : -1;
+        c_tri[r] = f >= 0 ? f - first_face[c_inst[r]] : -1;
+        c_front[r] = closing_cos[r] < 0;
+    }
+    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b,
+                         new_bytearray(closing_face.data(), n * sizeof(int64_t)),
+                         new_bytearray(closing_t.data(), n * sizeof(double)),
+                         new_bytearray(c_inst.data(), n * sizeof(int32_t)),
+                         new_bytearray(c_tri.data(), n * sizeof(int64_t)), new_bytearray(c_front.data(), n));
 }
 
 // ------------------------------------------------------------------ closest distance

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..conventions import tol
 from ..errors import MissingDependencyError
-from . import T_MAX_MARGIN, Hits, HouseTriangles, Rays
+from . import T_MAX_MARGIN, FirstHit, FrontalHits, Hits, HouseTriangles, Rays
 
 try:
     from . import _embree
@@ -108,6 +108,37 @@ class EmbreeBackend:
             triangle=np.frombuffer(triangle, dtype=np.int64),
             front_facing=np.frombuffer(front, dtype=bool),
         )
+
+    def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> FrontalHits:
+        """:meth:`HouseTracer.frontal_query <sceneforge.raytrace.HouseTracer.frontal_query>`
+        in one call: each ray's closing hit (first-hit pass) and then its object hits up
+        to that hit + ``tol.envelope_slack``, ray by ray, bit for bit what the tracer makes
+        of :meth:`intersect_first` and :meth:`collect`."""
+        n = len(rays)
+        if not n:
+            empty = FirstHit(np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros(0, bool),
+                             np.zeros(0, np.int64), self._triangles.normal)
+            return FrontalHits(_empty_hits(0), empty)
+        o, d = self._rows(rays)
+        out = self._engine.collect(self._selected(objects), n, o, d, None, T_MAX_MARGIN, tol.same_instance_hit,
+                                   False, self._selected(envelope), float(envelope_near), tol.envelope_slack)
+        offsets, t, instance, triangle, front, c_face, c_t, c_instance, c_triangle, c_front = out
+        hits = Hits(
+            offsets=np.frombuffer(offsets, dtype=np.int64),
+            t=np.frombuffer(t, dtype=np.float64),
+            instance=np.frombuffer(instance, dtype=np.int32),
+            triangle=np.frombuffer(triangle, dtype=np.int64),
+            front_facing=np.frombuffer(front, dtype=bool),
+        )
+        closing = FirstHit(
+            t=np.frombuffer(c_t, dtype=np.float64),
+            instance=np.frombuffer(c_instance, dtype=np.int32),
+            triangle=np.frombuffer(c_triangle, dtype=np.int64),
+            front_facing=np.frombuffer(c_front, dtype=bool),
+            face=np.frombuffer(c_face, dtype=np.int64),
+            face_normals=self._triangles.normal,
+        )
+        return FrontalHits(hits, closing)
 
     def intersect_all(
         self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
