@@ -21,6 +21,7 @@ one worker over many views.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import resource
 import shutil
@@ -254,7 +255,8 @@ def memory_over_views(house, cameras, n_views: int, threads: int):
     """[(views done, resident MiB, peak resident MiB)] of one fresh worker process computing
     ``n_views`` full views (RGB excluded), at ten checkpoints."""
     checkpoints = {1, *np.linspace(n_views / 10, n_views, 10).astype(int).tolist()}
-    with ProcessPoolExecutor(1) as pool:
+    # spawned, not forked: a fork would inherit this process's memory (Open3D, other houses)
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
         return pool.submit(_memory_job, house, cameras, n_views, threads, checkpoints).result()
 
 
