@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
-import resource
 import shutil
 import subprocess
 import tempfile
@@ -233,10 +232,11 @@ def _warm_job(_):
 
 
 def _rss_mib() -> tuple[float, float]:
-    """(resident, peak resident) MiB of this process."""
-    with open("/proc/self/statm") as f:
-        resident = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    return resident, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    """(resident, peak resident) MiB of this process's memory image (VmRSS, VmHWM; not
+    ru_maxrss, which on Linux keeps the peak of the process before its exec)."""
+    with open("/proc/self/status") as f:
+        kib = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in f) if k in ("VmRSS", "VmHWM")}
+    return kib["VmRSS"] / 1024, kib["VmHWM"] / 1024
 
 
 def _memory_job(house, cameras, n_views: int, threads: int, checkpoints):
