@@ -408,3 +408,20 @@ def test_without_the_extension_open3d_is_the_default(monkeypatch):
 
 def test_the_extension_is_the_default_where_it_is_built():
     assert default_backend() == ("embree" if embree.AVAILABLE else "open3d")
+
+
+@NO_EXTENSION
+def test_embree_engine_serves_several_python_threads():
+    """Queries release the GIL; threads sharing one tracer, each adding scenes for its own
+    instance subsets meanwhile, get what they would alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    house = random_house(9)
+    origins, directions = random_rays(np.random.default_rng(13), 4000)
+    masks = [np.random.default_rng(k).random(len(house.instances)) < 0.6 for k in range(8)]
+    alone = [HouseTracer(house, "embree").all_hits(origins, directions, instances=m) for m in masks]
+    shared = HouseTracer(house, "embree", threads=2)
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda m: shared.all_hits(origins, directions, instances=m), masks))
+    for a, b in zip(alone, together):
+        assert_same_hits(a, b)

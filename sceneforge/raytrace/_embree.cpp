@@ -33,6 +33,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <deque>
 #include <limits>
 #include <string>
 #include <thread>
@@ -116,7 +117,7 @@ struct EngineObject {
     PyObject_HEAD
     RTCDevice device;
     int threads;
-    std::vector<Scene>* scenes;
+    std::deque<Scene>* scenes;  // a deque: adding a scene keeps the others in place (queries run without the GIL)
     // float64 copies of the house the callbacks read (plane terms, triangles)
     std::vector<double>* normal_xyz;  // (3, m)
     std::vector<double>* offset;      // (m,)
@@ -312,7 +313,7 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
         return -1;
     }
     self->threads = threads;
-    self->scenes = new std::vector<Scene>();
+    self->scenes = new std::deque<Scene>();
     if (!copy_buffer(vertices, self->vertices, -1, "vertices") || !copy_buffer(faces, self->faces, -1, "faces"))
         return -1;
     const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
