@@ -270,11 +270,17 @@ class Backend(Protocol):
 
 
 class CollectingBackend(Backend, Protocol):
-    """An engine that also does the hit collection itself (distances, sorting, merging)."""
+    """An engine that also does the hit collection itself (distances, sorting, merging);
+    :class:`HouseTracer` then calls these instead of building the hits from the engine's
+    crossings."""
 
     def collect(self, rays: Rays, instances: np.ndarray | None = None, cutoff: np.ndarray | None = None) -> "Hits":
         """What :func:`_collect_hits` makes of ``intersect_all(rays, instances, cutoff)``
         with that ``cutoff`` (n,) float64 (None: none), bit for bit."""
+
+    def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> "FrontalHits":
+        """What :meth:`HouseTracer.frontal_query` makes of :meth:`intersect_first` and
+        :meth:`collect` (closing hits, then object hits up to them + slack), bit for bit."""
 
 
 #: how far (m) past ``t_max`` an engine's own (e.g. float32) distance must be before it
