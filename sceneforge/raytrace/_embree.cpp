@@ -9,6 +9,8 @@
 //   * a filter callback that rejects every hit (so the traversal goes on) after recording
 //     it with its float64 plane distance `(offset - n.o) / (n.d)`, each dot product summed
 //     x, y, z, as `_plane_distance` computes it (build with -ffp-contract=off: no FMA);
+//   * Open3D's own list rule too: a hit of the same geometry as the last one reported on
+//     the ray, at the same float32 distance or of the same triangle, is left out;
 //   * the traversal stops at `cutoff + margin` (the ray's closing hit, found by a
 //     first-hit pass, plus slack), and hits beyond `cutoff` are dropped;
 //   * per ray, hits are sorted by the same float key `_order_by_ray_and_distance` uses,
