@@ -14,13 +14,14 @@ TORCH_INDEX ?=
 help:  ## list the targets
 	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
 
-$(STAMP): pyproject.toml scripts/system-deps.sh
-	bash scripts/system-deps.sh
+$(STAMP): pyproject.toml setup.py sceneforge/raytrace/_embree.cpp scripts/system-deps.sh
+	PYTHON=$(PYTHON) bash scripts/system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
 	# torch first and pinned (README "Two commands": which build that is, and TORCH_INDEX)
 	$(PY) -m pip install --quiet torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PY) -m pip install --quiet -e ".[all]"
+	@$(PY) -c "from sceneforge.raytrace import default_backend as d; print('ray tracing engine:', d())"
 	touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install sceneforge with every extra

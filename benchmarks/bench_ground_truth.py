@@ -1,21 +1,33 @@
-"""Seconds per view for the full ground truth (frontal layers + overhead + mesh).
+"""Seconds per view for the full ground truth (frontal layers + overhead + mesh), against the
+physical limit of its ray work.
 
-Compares, in one run on the same houses and cameras, sceneforge's tracer (Open3D
-all-hit, one traversal per ray) with a baseline on trimesh's
-``intersects_location(multiple_hits=True)`` (Embree through embreex, re-casting each ray
-from just past its previous hit). Both feed the same layer, overhead and mesh code, so
-the ratio is the tracer's. Houses: a bundled toy house, and a house of >= 1 M triangles
-(the breakfast room subdivided when ../shared/scenes is present, else a subdivided toy
-house).
+The limit is plain Embree doing the same ray queries, compiled from
+``benchmarks/native_all_hits.cpp`` at run time with the system compiler: per view, the
+frontal 320×240 rays and the overhead 300×300 rays, each a first-hit pass against the
+closing instances and one traversal per ray of the objects up to the closing hit whose
+filter callback collects every hit, sorted per ray into CSR arrays. sceneforge's time is
+its whole ground truth (tracing, layer rules, normals, overhead camera and truth, mesh
+clipping) with each engine, on the same cameras, at the same thread count, so the ratio
+is everything sceneforge does beyond the unavoidable traversals.
 
-    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 3] [--quick]
+Houses: a bundled toy house, the breakfast room subdivided to >= 1 M triangles (when
+../shared/scenes is present), and a synthetic furnished room of >= 1 M triangles with
+several hits per ray. Then the throughput of two worker processes, and the peak memory of
+one worker over many views.
+
+    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
+import shutil
+import subprocess
+import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,83 +37,21 @@ import trimesh
 from sceneforge.cameras import CameraSamplerConfig, sample_cameras
 from sceneforge.conventions import tol
 from sceneforge.frustum import view_mesh
-from sceneforge.houses import BUNDLED_TOY, discover, load
-from sceneforge.layers import frontal_layers
-from sceneforge.overhead import overhead_camera, overhead_truth
-from sceneforge.raytrace import FrontalHits, HouseTracer, Rays
+from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance
+from sceneforge.layers import frontal_layers, instance_labels
+from sceneforge.overhead import overhead_camera, overhead_instances, overhead_truth
+from sceneforge.raytrace import HouseTracer
+from sceneforge.raytrace.embree_backend import AVAILABLE as EMBREE_EXTENSION
 from sceneforge.view import ViewConfig, compute_view
 
-BREAKFAST = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
+HERE = Path(__file__).resolve().parent
+BREAKFAST = HERE.parents[1] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
+NATIVE = HERE / "native_all_hits.cpp"
 
 
-class TrimeshBackend:
-    """The baseline engine: trimesh's multi-hit ray query on the whole house as one mesh."""
+# ---------------------------------------------------------------------------- houses
 
-    name = "trimesh"
-
-    def __init__(self, triangles):
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-        self.triangles = triangles
-        self._intersector = RayMeshIntersector
-        self._meshes = {}
-
-    def _mesh(self, instances):
-        """(intersector, global face index of each of its faces) for an instance subset."""
-        key = None if instances is None else instances.tobytes()
-        if key not in self._meshes:
-            tri = self.triangles
-            faces = np.arange(len(tri.faces)) if instances is None else np.flatnonzero(instances[tri.instance])
-            mesh = trimesh.Trimesh(tri.vertices, tri.faces[faces], process=False)
-            self._meshes[key] = (self._intersector(mesh), faces)
-        return self._meshes[key]
-
-    def intersect_all(self, rays, instances=None, t_max=None):
-        intersector, faces = self._mesh(instances)
-        _, ray, tri = intersector.intersects_location(rays.origins, rays.directions, multiple_hits=True)
-        return ray.astype(np.int64), faces[tri].astype(np.int64)
-
-    def intersect_first(self, rays, instances=None):
-        intersector, faces = self._mesh(instances)
-        tri = intersector.intersects_first(rays.origins, rays.directions)
-        return np.where(tri >= 0, faces[np.maximum(tri, 0)], -1).astype(np.int64)
-
-    def closest_distance(self, points):
-        return trimesh.proximity.closest_point(trimesh.Trimesh(self.triangles.vertices, self.triangles.faces,
-                                                               process=False), points)[1]
-
-
-class NaiveTracer(HouseTracer):
-    """The baseline pipeline: every hit of every ray through the whole house (trimesh
-    multi-hit), then the hits the layer rules may use are picked out (each ray's first
-    envelope hit, and the object hits up to it). The layers agree
-    with sceneforge's except where trimesh drops coincident hits (measured in :func:`main`)."""
-
-    def __init__(self, house):
-        super().__init__(house)
-        self.backend = TrimeshBackend(self.triangles)
-
-    def frontal_query(self, origins, directions, objects=None, envelope=None, envelope_near=0.0):
-        objects = ~self.triangles.envelope if objects is None else objects
-        envelope = self.triangles.envelope if envelope is None else envelope
-        hits = self.all_hits(origins, directions)
-        ray = hits.ray_ids()
-        closes = envelope[hits.instance] & (hits.t >= envelope_near)
-        first = np.flatnonzero(closes)
-        first = first[np.r_[True, ray[first][1:] != ray[first][:-1]]] if len(first) else first
-        face = np.full(hits.n_rays, -1, dtype=np.int64)
-        face[ray[first]] = self.triangles.global_index(hits.instance[first], hits.triangle[first])
-        closing = self._first_hit(Rays.check(origins, directions), face)
-        cutoff = np.where(np.isnan(closing.t), np.inf, closing.t + tol.envelope_slack)
-        wanted = objects[hits.instance] & (hits.t <= cutoff[ray])
-        return FrontalHits(hits.select(wanted), closing)
-
-
-def tracer(house, backend: str) -> HouseTracer:
-    return NaiveTracer(house) if backend == "trimesh" else HouseTracer(house)
-
-
-def subdivided(house, min_triangles: int):
+def subdivided(house: House, min_triangles: int) -> House:
     """The house with every instance subdivided (1 → 4 triangles) until it has enough."""
     while house.triangle_count < min_triangles:
         instances = []
@@ -112,101 +62,268 @@ def subdivided(house, min_triangles: int):
     return house
 
 
-def time_views(house, cameras, backend: str, config: ViewConfig, repeat: int = 3) -> dict[str, float]:
+def furnished_room(min_triangles: int = 1_000_000) -> House:
+    """An 8 × 3 × 8 m room (floor, ceiling, four walls) with a 7 × 7 grid of "lamps" around
+    eye height, each four nested spheres of 5,120 triangles (a shade and its inner
+    layers), so that a ray through one crosses up to eight surfaces: 1 M triangles and
+    several object hits per ray."""
+    h = House(id="furnished_room", instances=[], rooms=[Room("r0", "living_room", 0)])
+
+    def add(name, category, vertices, faces):
+        make_instance(h, name=name, category=category, label=name, room_id="r0", vertices=vertices, faces=faces)
+
+    size, height, t = 8.0, 3.0, 0.1
+    half = size / 2
+    for name, category, extents, centre in (
+        ("floor", 2, (size, t, size), (0, -t / 2, 0)), ("ceiling", 22, (size, t, size), (0, height + t / 2, 0)),
+        ("wall0", 1, (t, height, size), (-half - t / 2, height / 2, 0)),
+        ("wall1", 1, (t, height, size), (half + t / 2, height / 2, 0)),
+        ("wall2", 1, (size, height, t), (0, height / 2, -half - t / 2)),
+        ("wall3", 1, (size, height, t), (0, height / 2, half + t / 2)),
+    ):
+        box = trimesh.creation.box(extents=extents).apply_translation(centre)
+        add(name, category, box.vertices, box.faces)
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    shells = (1.0, 0.85, 0.7, 0.55)
+    per_lamp = len(shells) * len(sphere.faces)
+    n = -(-min_triangles // per_lamp)
+    side = int(np.ceil(np.sqrt(n)))
+    for k in range(n):
+        ix, iz = divmod(k, side)
+        centre = np.array([-half + (ix + 0.5) * size / side, 1.3 + 0.2 * ((3 * ix + iz) % 3),
+                           -half + (iz + 0.5) * size / side])
+        radius = 0.34 + 0.03 * ((ix + iz) % 3)
+        v = np.concatenate([sphere.vertices * radius * s + centre for s in shells])
+        f = np.concatenate([sphere.faces + j * len(sphere.vertices) for j in range(len(shells))])
+        add(f"lamp{k}", 40, v, f)
+    return h
+
+
+def cameras_of(house: House, n: int, width: int = 320, height: int = 240):
+    sampler = CameraSamplerConfig(width=width, height=height)
+    cams, _ = sample_cameras(house, n, np.random.default_rng(0), sampler)
+    if len(cams) < n:  # rooms with windows or full of objects: relax the checks rather than skip
+        sampler = replace(sampler, max_escape_fraction=0.5, min_object_fraction=0.02)
+        cams, _ = sample_cameras(house, n, np.random.default_rng(0), sampler)
+    return cams
+
+
+# ---------------------------------------------------------------------------- native limit
+
+def native_program(workdir: Path) -> Path:
+    """Compile native_all_hits.cpp against the system's Embree (4 where present, else 3)."""
+    compiler = shutil.which("c++") or shutil.which("g++")
+    if compiler is None:
+        raise SystemExit("no C++ compiler: apt-get install g++ libembree-dev (scripts/system-deps.sh)")
+    major = next((m for m in (4, 3) for root in ("/usr", "/usr/local")
+                  if (Path(root) / "include" / f"embree{m}" / "rtcore.h").is_file()), None)
+    if major is None:
+        raise SystemExit("no Embree headers: apt-get install libembree-dev (scripts/system-deps.sh)")
+    exe = workdir / "native_all_hits"
+    subprocess.run([compiler, "-std=c++17", "-O2", *(["-DSF_EMBREE4"] if major == 4 else []), str(NATIVE),
+                    f"-lembree{major}", "-pthread", "-o", str(exe)], check=True)
+    return exe
+
+
+def view_queries(house: House, cameras, tracer: HouseTracer, config: ViewConfig):
+    """Each view's two queries as sceneforge makes them: (rays (n, 6) float64, objects,
+    closing (n_instances,) bool, near)."""
+    _, envelope = instance_labels(house)
+    seen = overhead_instances(house, config.overhead)
+    out = []
+    for cam in cameras:
+        o, d, _ = cam.rays()
+        out.append((np.c_[np.broadcast_to(o, d.shape), d], ~envelope, envelope, 0.0))
+        top = overhead_camera(house, cam, frontal_layers(house, cam, tracer), config.overhead)
+        o, d, _ = top.rays()
+        out.append((np.c_[o, np.broadcast_to(d, o.shape)], seen & ~envelope, seen & envelope,
+                    config.overhead.floor_clearance))
+    return out
+
+
+def native_seconds(exe: Path, house: House, queries, rounds: int, threads: int) -> tuple[float, float, int, int]:
+    """(best wall seconds for all queries, CPU seconds of that round, hits, rays) of the
+    native program on these queries, in the same float32 coordinates (shifted to the house
+    centre) as sceneforge's engines."""
+    vertices = np.concatenate([i.vertices for i in house.instances])
+    shift = 0.5 * (vertices.min(0) + vertices.max(0))
+    fv = np.cumsum([0] + [len(i.vertices) for i in house.instances]).astype(np.int64)
+    ff = np.cumsum([0] + [len(i.faces) for i in house.instances]).astype(np.int64)
+    faces = np.concatenate([i.faces + fv[k] for k, i in enumerate(house.instances)]).astype(np.uint32)
+    with tempfile.NamedTemporaryFile(suffix=".bin") as f:
+        np.array([len(vertices), len(faces), len(house.instances), len(queries), rounds, threads],
+                 np.int64).tofile(f)
+        (vertices - shift).astype(np.float32).tofile(f)
+        faces.tofile(f)
+        fv.tofile(f)
+        ff.tofile(f)
+        for rays, objects, closing, near in queries:
+            np.array([len(rays)], np.int64).tofile(f)
+            objects.astype(np.uint8).tofile(f)
+            closing.astype(np.uint8).tofile(f)
+            np.array([near, tol.envelope_slack], np.float32).tofile(f)
+            r = rays.copy()
+            r[:, :3] -= shift
+            r.astype(np.float32).tofile(f)
+        f.flush()
+        out = subprocess.run([str(exe), f.name], check=True, capture_output=True, text=True).stdout.split()
+    return float(out[0]), float(out[1]), int(out[2]), int(out[3])
+
+
+# ---------------------------------------------------------------------------- sceneforge
+
+def time_views(house, cameras, tracer, config: ViewConfig, repeat: int) -> dict[str, float]:
     """Mean seconds per view of each stage (tracer build excluded, it is once per house), from
     the fastest of ``repeat`` rounds over the views (this VM's speed drifts by ±20 % from
-    minute to minute; the fastest round is the least disturbed). Each round uses fresh
-    camera objects, so no round reuses the rays an earlier one computed."""
-    tr = tracer(house, backend)
-    frontal_layers(house, cameras[0], tr)  # warm-up: first-call costs (imports, allocations)
+    minute to minute; the fastest round is the least disturbed), and the process CPU
+    seconds per view of that round ("CPU": all threads; robust to other processes on the
+    machine). Each round uses fresh camera objects, so no round reuses the rays an earlier
+    one computed."""
+    compute_view(house, cameras[0], config, tracer)  # warm-up: first-call costs, subset scenes
     best = None
     for _ in range(repeat):
         stages = {"frontal": 0.0, "overhead camera": 0.0, "overhead truth": 0.0, "mesh": 0.0}
+        cpu = time.process_time()
         for cam in cameras:
             cam = cam.resized(cam.width, cam.height)  # a new Camera: its rays are not cached yet
             t0 = time.perf_counter()
-            layers = frontal_layers(house, cam, tr)
+            layers = frontal_layers(house, cam, tracer)
             t1 = time.perf_counter()
             top = overhead_camera(house, cam, layers, config.overhead)
             t2 = time.perf_counter()
-            overhead_truth(house, top, tr, config.overhead)
+            overhead_truth(house, top, tracer, config.overhead)
             t3 = time.perf_counter()
             view_mesh(house, cam, layers, config.mesh, tr)
             t4 = time.perf_counter()
             for k, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 stages[k] += dt / len(cameras)
         stages["total"] = sum(stages.values())
+        stages["CPU"] = (time.process_time() - cpu) / len(cameras)
         if best is None or stages["total"] < best["total"]:
             best = stages
     return best
 
 
-def layer_differences(house, views) -> float:
-    """Fraction of (layer, pixel) values where the baseline's frontal layers differ."""
-    ours, base = tracer(house, "open3d"), tracer(house, "trimesh")
-    bad = total = 0
-    for v in views:
-        a, b = frontal_layers(house, v, ours).depth, frontal_layers(house, v, base).depth
-        bad += int((~((a == b) | (np.isnan(a) & np.isnan(b)))).sum())
-        total += a.size
-    return bad / total
-
-
 def _warm() -> None:
-    import open3d  # noqa: F401  (its import takes about a second: not part of a view)
+    HouseTracer  # noqa: B018  (the worker has imported sceneforge: nothing else to do)
 
 
-def _views_of(house, views, config, threads):
+def _views_of(house, cameras, config, threads):
     tr = HouseTracer(house, threads=threads)
-    for cam in views:
+    for cam in cameras:
         compute_view(house, cam, config, tr)
 
 
-def throughput(house, views, n_jobs: int = 2, config: ViewConfig | None = None) -> float:
+def throughput(house, cameras, n_jobs: int = 2, config: ViewConfig | None = None) -> float:
     """Seconds per view when ``n_jobs`` processes share the views (each builds its tracer
     and, as the render pipeline's workers do, traces with its share of the cores)."""
-    from joblib import Parallel, delayed
-
     config = config or ViewConfig()
-    with Parallel(n_jobs=n_jobs) as pool:
-        pool(delayed(_warm)() for _ in range(n_jobs))  # start the workers before timing
+    threads = max(1, (os.cpu_count() or 1) // n_jobs)
+    with ProcessPoolExecutor(n_jobs) as pool:
+        list(pool.map(_warm_job, range(n_jobs)))  # start the workers before timing
         t0 = time.perf_counter()
-        threads = max(1, (os.cpu_count() or 1) // n_jobs)
-        pool(delayed(_views_of)(house, views[k::n_jobs], config, threads) for k in range(n_jobs))
-        return (time.perf_counter() - t0) / len(views)
+        list(pool.map(_views_of, [house] * n_jobs, [cameras[k::n_jobs] for k in range(n_jobs)],
+                      [config] * n_jobs, [threads] * n_jobs))
+        return (time.perf_counter() - t0) / len(cameras)
 
+
+def _warm_job(_):
+    _warm()
+
+
+def _rss_mib() -> tuple[float, float]:
+    """(resident, peak resident) MiB of this process's memory image (VmRSS, VmHWM; not
+    ru_maxrss, which on Linux keeps the peak of the process before its exec)."""
+    with open("/proc/self/status") as f:
+        kib = {k: int(v.split()[0]) for k, v in (line.split(":", 1) for line in f) if k in ("VmRSS", "VmHWM")}
+    return kib["VmRSS"] / 1024, kib["VmHWM"] / 1024
+
+
+def _memory_job(house, cameras, n_views: int, threads: int, checkpoints):
+    config = ViewConfig()
+    tr = HouseTracer(house, threads=threads)
+    out = []
+    for k in range(1, n_views + 1):
+        cam = cameras[k % len(cameras)]
+        compute_view(house, cam.resized(cam.width, cam.height), config, tr)
+        if k in checkpoints:
+            out.append((k, *_rss_mib()))
+    return out
+
+
+def memory_over_views(house, cameras, n_views: int, threads: int):
+    """[(views done, resident MiB, peak resident MiB)] of one fresh worker process computing
+    ``n_views`` full views (RGB excluded), at ten checkpoints."""
+    checkpoints = {1, *np.linspace(n_views / 10, n_views, 10).astype(int).tolist()}
+    # spawned, not forked: a fork would inherit this process's memory (Open3D, other houses)
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_memory_job, house, cameras, n_views, threads, checkpoints).result()
+
+
+# ---------------------------------------------------------------------------- main
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--views", type=int, default=4, help="cameras per house")
-    ap.add_argument("--quick", action="store_true", help="toy house at 320x240 only")
-    ap.add_argument("--repeat", type=int, default=3, help="rounds over the views; the fastest is reported")
+    ap.add_argument("--repeat", type=int, default=5, help="rounds over the views; the fastest is reported")
+    ap.add_argument("--threads", type=int, default=2, help="tracing threads (sceneforge and native)")
+    ap.add_argument("--memory-views", type=int, default=500, help="views of the memory run (0: skip it)")
+    ap.add_argument("--quick", action="store_true", help="toy house only, 50 views of memory run")
     args = ap.parse_args()
 
     toy = load(discover(BUNDLED_TOY)[0])
-    big_source = load(BREAKFAST) if BREAKFAST.exists() else toy
-    houses = [toy] if args.quick else [toy, subdivided(big_source, 1_000_000)]
-    resolutions = [(320, 240)] if args.quick else [(320, 240), (640, 480)]
+    houses = [toy]
+    if not args.quick:
+        if BREAKFAST.exists():
+            houses.append(subdivided(load(BREAKFAST), 1_000_000))
+        houses.append(furnished_room())
+    engines = ["embree", "open3d"] if EMBREE_EXTENSION else ["open3d"]
     config = ViewConfig()
-    print(f"{'house':<22} {'triangles':>10} {'resolution':>10} {'stage':<16} "
-          f"{'sceneforge s/view':>17} {'trimesh s/view':>15} {'ratio':>6}")
-    for house in houses:
-        sampler = CameraSamplerConfig()
-        cams, _ = sample_cameras(house, args.views, np.random.default_rng(0), sampler)
-        if not cams:  # a scene without room structure: relax the checks rather than skip it
-            cams, _ = sample_cameras(house, args.views, np.random.default_rng(0),
-                                     replace(sampler, max_escape_fraction=0.5, min_object_fraction=0.02))
-        for w, h in resolutions:
-            views = [c.resized(w, h) for c in cams]
-            ours = time_views(house, views, "open3d", config, args.repeat)
-            base = time_views(house, views, "trimesh", config, args.repeat)
-            differ = layer_differences(house, views)
-            pair = throughput(house, views * 3)  # enough views per worker to amortise its start
-            for stage in ours:
-                print(f"{house.id:<22} {house.triangle_count:>10,} {f'{w}x{h}':>10} {stage:<16} "
-                      f"{ours[stage]:>17.3f} {base[stage]:>15.3f} {base[stage] / ours[stage]:>5.1f}x")
-            print(f"  2 worker processes: {pair:.3f} s/view (throughput); trimesh multi-hit layers differ from "
-                  f"sceneforge's on {differ:.2%} of layer pixels (it drops coincident hits, SPEC §4)")
+    print(f"{args.threads} tracing threads, {os.cpu_count()} cores; best of {args.repeat} rounds; "
+          f"{'Embree extension built' if EMBREE_EXTENSION else 'no Embree extension: Open3D only'}")
+    with tempfile.TemporaryDirectory() as tmp:
+        exe = native_program(Path(tmp))
+        for house in houses:
+            cameras = cameras_of(house, args.views)
+            tracers = {e: HouseTracer(house, e, threads=args.threads) for e in engines}
+            queries = view_queries(house, cameras, tracers[engines[0]], config)
+            # rounds alternate between the native program and each engine, so that the
+            # machine's drift (other jobs) hits them alike; each figure is its best round,
+            # and the ratios are also taken round by round (their median)
+            natives, times = [], {e: [] for e in engines}
+            for _ in range(args.repeat):
+                natives.append(native_seconds(exe, house, queries, 1, args.threads))
+                for e in engines:
+                    times[e].append(time_views(house, cameras, tracers[e], config, 1))
+            hits, rays = natives[0][2:]
+            native = min(n[0] for n in natives) / len(cameras)
+            native_cpu = min(n[1] for n in natives) / len(cameras)
+            best = {e: min(rounds, key=lambda r: r["total"]) for e, rounds in times.items()}
+            paired = {e: np.median([r["total"] / (n[0] / len(cameras)) for r, n in zip(times[e], natives)])
+                      for e in engines}
+            print(f"\n{house.id}: {house.triangle_count:,} triangles, {len(cameras)} views of 320x240 "
+                  f"+ 300x300 overhead, {hits / rays:.1f} object hits per ray")
+            print(f"  {'stage':<16}" + "".join(f"{f'{e} s/view':>16}" for e in engines) + f"{'native s/view':>16}")
+            for stage in best[engines[0]]:
+                native_column = {"total": f"{native:>16.4f}"}.get(stage, "")
+                if stage == "CPU":
+                    row = "".join(f"{min(r['CPU'] for r in times[e]):>16.4f}" for e in engines)
+                    print(f"  {'CPU (best)':<16}{row}{native_cpu:>16.4f}")
+                    continue
+                print(f"  {stage:<16}" + "".join(f"{best[e][stage]:>16.4f}" for e in engines) + native_column)
+            print("  ratio to native " + "".join(f"{best[e]['total'] / native:>15.2f}x" for e in engines)
+                  + "   (round by round, median: " + ", ".join(f"{paired[e]:.2f}x" for e in engines)
+                  + "; CPU: " + ", ".join(f"{min(r['CPU'] for r in times[e]) / native_cpu:.2f}x" for e in engines)
+                  + ")")
+        pair = throughput(toy, cameras_of(toy, 12))
+        print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
+        if args.memory_views:
+            n = 50 if args.quick else args.memory_views
+            for house in [toy] + ([] if args.quick else [houses[-1]]):
+                views = n if house is toy else max(1, n // 10)
+                marks = memory_over_views(house, cameras_of(house, 8), views, args.threads)
+                print(f"one worker, {house.id}, {views} views: resident / peak MiB after "
+                      + ", ".join(f"{k}: {r:.0f}/{p:.0f}" for k, r, p in marks))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""The all-hit tracer: the Open3D engine against the numpy reference, hit for hit, and the
-hit rules shared by both (plane distances, sorting, merging same-instance hits)."""
+"""The all-hit tracer: the fast engines (sceneforge's Embree extension, Open3D) against the
+numpy reference and each other, hit for hit, and the hit rules they share (plane distances,
+sorting, merging same-instance hits)."""
 
 from __future__ import annotations
 
@@ -7,13 +8,24 @@ import numpy as np
 import pytest
 import trimesh
 
+from sceneforge.cameras import CameraSamplerConfig, sample_cameras
 from sceneforge.conventions import tol
-from sceneforge.errors import HouseError
-from sceneforge.houses import House, make_instance
-from sceneforge.raytrace import HouseTracer
+from sceneforge.errors import HouseError, MissingDependencyError
+from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
+from sceneforge.raytrace import HouseTracer, Rays, default_backend
+from sceneforge.raytrace import embree_backend as embree
 from sceneforge.raytrace.reference import moller_trumbore
 
-BACKENDS = ("open3d", "reference")
+NO_EXTENSION = pytest.mark.skipif(not embree.AVAILABLE, reason="sceneforge's Embree extension is not built")
+#: the fast engines: the Embree extension (where it is built) and Open3D
+FAST = (pytest.param("embree", marks=NO_EXTENSION), "open3d")
+BACKENDS = (*FAST, "reference")
+HIT_FIELDS = ("offsets", "t", "instance", "triangle", "front_facing")
+
+
+def assert_same_hits(a, b):
+    for name in HIT_FIELDS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 
 def add_box(house: House, name: str, category: int, lo, hi):
@@ -50,11 +62,12 @@ def random_rays(rng, n: int):
     return origins, directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
+@pytest.mark.parametrize("backend", FAST)
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_fast_engine_equals_reference_hit_for_hit(seed):
+def test_fast_engine_equals_reference_hit_for_hit(backend, seed):
     house = random_house(seed)
     origins, directions = random_rays(np.random.default_rng(100 + seed), 2000)
-    fast = HouseTracer(house).all_hits(origins, directions)
+    fast = HouseTracer(house, backend=backend).all_hits(origins, directions)
     ref = HouseTracer(house, backend="reference").all_hits(origins, directions)
     assert len(ref.t) > 1000
     np.testing.assert_array_equal(fast.offsets, ref.offsets)
@@ -64,12 +77,13 @@ def test_fast_engine_equals_reference_hit_for_hit(seed):
     np.testing.assert_allclose(fast.t, ref.t, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("backend", FAST)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_hits_are_sorted_real_crossings(seed):
+def test_hits_are_sorted_real_crossings(backend, seed):
     """Every reported hit lies on its triangle, at its distance, in ascending order per ray."""
     house = random_house(seed)
     origins, directions = random_rays(np.random.default_rng(seed), 500)
-    tracer = HouseTracer(house)
+    tracer = HouseTracer(house, backend=backend)
     hits = tracer.all_hits(origins, directions)
     ray = hits.ray_ids()
     same_ray = ray[1:] == ray[:-1]
@@ -176,11 +190,12 @@ def test_frontal_query_is_frontal_hits_split_at_the_closing_hit(backend):
     assert np.isnan(split.closing.t[~closed]).all() and (split.closing.face[~closed] == -1).all()
 
 
-def test_shared_origin_or_direction_gives_the_same_hits():
+@pytest.mark.parametrize("backend", FAST)
+def test_shared_origin_or_direction_gives_the_same_hits(backend):
     """A camera passes its origin (an orthographic view its direction) as one broadcast row;
     the distances are computed per face then, and must not change by a bit."""
     house = random_house(6)
-    tracer = HouseTracer(house)
+    tracer = HouseTracer(house, backend=backend)
     rng = np.random.default_rng(10)
     _, directions = random_rays(rng, 3000)
     origin = np.array([1.0, 1.0, 1.0])
@@ -254,7 +269,7 @@ def test_bad_input_gives_specific_errors():
         HouseTracer(House(id="empty", instances=[]))
     h = House(id="box", instances=[])
     add_box(h, "box", 3, (0, 0, 0), (1, 1, 1))
-    with pytest.raises(ValueError, match="backend 'embree9'"):
+    with pytest.raises(ValueError, match="backend 'embree9'.*embree, open3d, reference"):
         HouseTracer(h, backend="embree9")
     tracer = HouseTracer(h)
     with pytest.raises(ValueError, match="unit vectors"):
@@ -267,7 +282,7 @@ def test_bad_input_gives_specific_errors():
     assert empty.n_rays == 0 and len(empty.t) == 0
 
 
-@pytest.mark.parametrize("backend", ["open3d", "reference"])
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("seed", [0, 1])
 def test_instance_subset_equals_dropping_the_other_instances(backend, seed):
     house = random_house(seed)
@@ -285,17 +300,19 @@ def test_instance_subset_equals_dropping_the_other_instances(backend, seed):
         tracer.all_hits(origins, directions, instances=subset[:-1])
 
 
-def test_engine_threads_do_not_change_the_hits(monkeypatch):
+@pytest.mark.parametrize("backend", FAST)
+def test_engine_threads_do_not_change_the_hits(monkeypatch, backend):
     house = random_house(7)
     origins, directions = random_rays(np.random.default_rng(11), 3000)
-    every_core = HouseTracer(house).frontal_query(origins, directions)
+    every_core = HouseTracer(house, backend).frontal_query(origins, directions)
     monkeypatch.setenv("SCENEFORGE_TRACE_THREADS", "1")
-    one = HouseTracer(house)
-    assert one.threads == 1 and HouseTracer(house, threads=2).threads == 2
+    one = HouseTracer(house, backend)
+    assert one.threads == 1 and HouseTracer(house, backend, threads=2).threads == 2
     single = one.frontal_query(origins, directions)
-    for name in ("offsets", "t", "instance", "triangle"):
-        np.testing.assert_array_equal(getattr(single.objects, name), getattr(every_core.objects, name))
-    np.testing.assert_array_equal(single.closing.face, every_core.closing.face)
+    three = HouseTracer(house, backend, threads=3).frontal_query(origins, directions)
+    for other in (single, three):
+        assert_same_hits(other.objects, every_core.objects)
+        np.testing.assert_array_equal(other.closing.face, every_core.closing.face)
     with pytest.raises(ValueError, match="threads"):
         HouseTracer(house, threads=-1)
 
@@ -317,3 +334,94 @@ def test_envelope_hits_nearer_than_envelope_near_do_not_close_the_ray(backend):
     np.testing.assert_allclose(query.closing.t, [3.3, 3.3, 0.8])
     np.testing.assert_array_equal(query.objects.counts, [2, 0, 0])  # the table's top and bottom
     np.testing.assert_allclose(query.objects.t, [2.5, 3.3])
+
+
+# ------------------------------------------------------------------ the Embree extension
+
+
+@NO_EXTENSION
+@pytest.mark.parametrize("seed", [4, 5])
+def test_embree_engine_equals_open3d_engine_bit_for_bit(seed):
+    """Every query of the extension against the Open3D engine it replaces: the same hits to
+    the last bit (the extension collects them itself; Open3D's go through numpy)."""
+    house = random_house(seed)
+    origins, directions = random_rays(np.random.default_rng(20 + seed), 3000)
+    ours, theirs = HouseTracer(house, "embree"), HouseTracer(house, "open3d")
+    assert_same_hits(ours.all_hits(origins, directions), theirs.all_hits(origins, directions))
+    a, b = ours.frontal_query(origins, directions), theirs.frontal_query(origins, directions)
+    assert_same_hits(a.objects, b.objects)
+    np.testing.assert_array_equal(a.closing.face, b.closing.face)
+    np.testing.assert_array_equal(a.closing.t, b.closing.t)
+    assert_same_hits(ours.frontal_hits(origins, directions), theirs.frontal_hits(origins, directions))
+    # closing hits nearer than envelope_near looked for again past it (the overhead view)
+    a, b = (tr.frontal_query(origins, directions, envelope_near=0.8) for tr in (ours, theirs))
+    assert_same_hits(a.objects, b.objects)
+    for name in ("t", "instance", "triangle", "front_facing", "face"):
+        np.testing.assert_array_equal(getattr(a.closing, name), getattr(b.closing, name), err_msg=name)
+    assert (np.nan_to_num(a.closing.t, nan=1.0) >= 0.8).all()
+    np.testing.assert_array_equal(ours.first_hit(origins, directions).face, theirs.first_hit(origins, directions).face)
+    # the engines' raw crossings (the Backend interface), cut like a frontal query's
+    rays = Rays.check(origins, directions)
+    cutoff = np.where(np.isnan(a.closing.t), np.inf, a.closing.t + tol.envelope_slack)
+    crossings = [np.unique(np.c_[tr.backend.intersect_all(rays, None, cutoff)], axis=0) for tr in (ours, theirs)]
+    np.testing.assert_array_equal(*crossings)
+    points = origins[:50]
+    np.testing.assert_allclose(ours.closest_distance(points), theirs.closest_distance(points), rtol=0, atol=1e-5)
+
+
+@NO_EXTENSION
+def test_embree_engine_names_the_triangle_open3d_names_on_coincident_faces():
+    """A toy house has coincident coplanar triangles within one instance. Open3D reports
+    the first it meets and leaves out the other, so its hit names that triangle where the
+    reference (which reports both and keeps the lower index) names the other; the
+    extension keeps Open3D's rule, so that stores stay bit-identical."""
+    house = load(discover(BUNDLED_TOY)[0])
+    tracer = HouseTracer(house, "embree")
+    camera = sample_cameras(house, 1, np.random.default_rng(0), CameraSamplerConfig(width=80, height=60), tracer)[0][0]
+    origins, directions, _ = camera.rays()
+    ours = tracer.all_hits(origins, directions)
+    assert_same_hits(ours, HouseTracer(house, "open3d").all_hits(origins, directions))
+    reference = HouseTracer(house, "reference").all_hits(origins, directions)
+    np.testing.assert_array_equal(ours.t, reference.t)
+    assert (ours.triangle != reference.triangle).any()
+
+
+@NO_EXTENSION
+def test_embree_engine_is_deterministic_over_many_blocks():
+    """More rays than one block of the extension, traced on 1..4 threads: the same arrays."""
+    house = random_house(8)
+    origins, directions = random_rays(np.random.default_rng(12), 20_000)
+    results = [HouseTracer(house, "embree", threads=k).all_hits(origins, directions) for k in (1, 2, 4)]
+    for other in results[1:]:
+        assert_same_hits(other, results[0])
+
+
+def test_without_the_extension_open3d_is_the_default(monkeypatch):
+    house = random_house(0)
+    monkeypatch.setattr(embree, "AVAILABLE", False)
+    monkeypatch.setattr(embree, "_embree", None)
+    assert default_backend() == "open3d"
+    assert HouseTracer(house).backend.name == "open3d"
+    with pytest.raises(MissingDependencyError, match="Embree extension"):
+        HouseTracer(house, backend="embree")
+
+
+def test_the_extension_is_the_default_where_it_is_built():
+    assert default_backend() == ("embree" if embree.AVAILABLE else "open3d")
+
+
+@NO_EXTENSION
+def test_embree_engine_serves_several_python_threads():
+    """Queries release the GIL; threads sharing one tracer, each adding scenes for its own
+    instance subsets meanwhile, get what they would alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    house = random_house(9)
+    origins, directions = random_rays(np.random.default_rng(13), 4000)
+    masks = [np.random.default_rng(k).random(len(house.instances)) < 0.6 for k in range(8)]
+    alone = [HouseTracer(house, "embree").all_hits(origins, directions, instances=m) for m in masks]
+    shared = HouseTracer(house, "embree", threads=2)
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda m: shared.all_hits(origins, directions, instances=m), masks))
+    for a, b in zip(alone, together):
+        assert_same_hits(a, b)

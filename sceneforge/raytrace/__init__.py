@@ -1,18 +1,22 @@
 """Ray tracing a house: every hit of every ray in one traversal (SPEC §4), and first hits.
 
-One interface, two engines (like ``trimesh.ray``):
+One interface, three engines (like ``trimesh.ray``):
 
+- ``embree`` (:mod:`.embree_backend`): Embree through sceneforge's compiled extension,
+  which collects every hit of a ray in one traversal and writes the hit arrays itself;
+  the default wherever the extension was built at install time.
 - ``open3d`` (:mod:`.open3d_backend`): Embree through Open3D's ``RaycastingScene``; the
-  default, fast.
+  fallback where the extension is missing.
 - ``reference`` (:mod:`.reference`): Möller–Trumbore in numpy over every triangle; slow
-  and obviously correct, used by the tests to check the fast engine hit for hit.
+  and obviously correct, used by the tests to check the fast engines hit for hit.
 
 An engine only answers *which* triangles a ray crosses, optionally among the envelope
-or the object instances only. Everything else is done here, once, for both: hit
-distances are recomputed in float64 from the triangle's plane (so both engines give
+or the object instances only. Everything else is done here, once, for every engine: hit
+distances are recomputed in float64 from the triangle's plane (so the engines give
 bit-identical distances for the same hit), hits are sorted per ray, and hits of the same
 instance within ``tol.same_instance_hit`` of each other (a ray through an edge shared by
-two triangles) are merged into the first of them.
+two triangles) are merged into the first of them. An engine with a ``collect`` method
+(the ``embree`` one) does this work itself, operation for operation the same.
 
 :meth:`HouseTracer.frontal_query` returns only the hits the frontal layers can use (SPEC §4
 rule 1), split the way the rules read them: a first-hit query against the envelope (the
@@ -40,10 +44,10 @@ from ..errors import HouseError
 if TYPE_CHECKING:
     from ..houses.model import House
 
-__all__ = ["BACKENDS", "Backend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays"]
+__all__ = ["BACKENDS", "Backend", "CollectingBackend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays", "default_backend"]
 
 #: Engine names accepted by :class:`HouseTracer`.
-BACKENDS = ("open3d", "reference")
+BACKENDS = ("embree", "open3d", "reference")
 #: environment variable giving :class:`HouseTracer`'s default engine thread count
 THREADS_ENV = "SCENEFORGE_TRACE_THREADS"
 
@@ -265,6 +269,20 @@ class Backend(Protocol):
         """(n,) float64 distance from each (n, 3) point to the nearest triangle."""
 
 
+class CollectingBackend(Backend, Protocol):
+    """An engine that also does the hit collection itself (distances, sorting, merging);
+    :class:`HouseTracer` then calls these instead of building the hits from the engine's
+    crossings."""
+
+    def collect(self, rays: Rays, instances: np.ndarray | None = None, cutoff: np.ndarray | None = None) -> "Hits":
+        """What :func:`_collect_hits` makes of ``intersect_all(rays, instances, cutoff)``
+        with that ``cutoff`` (n,) float64 (None: none), bit for bit."""
+
+    def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> "FrontalHits":
+        """What :meth:`HouseTracer.frontal_query` makes of :meth:`intersect_first` and
+        :meth:`collect` (closing hits, then object hits up to them + slack), bit for bit."""
+
+
 #: how far (m) past ``t_max`` an engine's own (e.g. float32) distance must be before it
 #: may leave a crossing out; generous against rounding, tiny against room sizes
 T_MAX_MARGIN = 0.01
@@ -403,18 +421,28 @@ def _order_by_ray_and_distance(ray: np.ndarray, t: np.ndarray, face: np.ndarray)
     return order
 
 
+def default_backend() -> str:
+    """``"embree"`` where sceneforge's Embree extension is built, else ``"open3d"``."""
+    from .embree_backend import AVAILABLE
+
+    return "embree" if AVAILABLE else "open3d"
+
+
 class HouseTracer:
     """All-hit and first-hit ray queries against one house; build once, reuse for every view.
 
     house   : the house; instance ``i`` of the results is ``house.instances[i]``
-    backend : ``"open3d"`` (fast, default) or ``"reference"`` (slow numpy, for tests)
+    backend : ``"embree"`` (fastest; the default where the extension is built),
+              ``"open3d"`` (the default elsewhere) or ``"reference"`` (slow numpy, for
+              tests); None: :func:`default_backend`. Every engine gives the same hits.
     threads : threads the engine may use per query; 0 (default) = every core, unless the
               ``SCENEFORGE_TRACE_THREADS`` environment variable says otherwise (the render
               pipeline sets it to cores ÷ workers in its worker processes, so that workers
               do not fight over the cores). Results do not depend on it.
     """
 
-    def __init__(self, house: "House", backend: str = "open3d", threads: int | None = None):
+    def __init__(self, house: "House", backend: str | None = None, threads: int | None = None):
+        backend = default_backend() if backend is None else backend
         if backend not in BACKENDS:
             raise ValueError(f"unknown ray-tracing backend {backend!r}; choose one of {', '.join(BACKENDS)}")
         if threads is None:
@@ -424,10 +452,14 @@ class HouseTracer:
         self.house_id = house.id
         self.threads = threads
         self.triangles = HouseTriangles.from_house(house)
-        if backend == "open3d":
+        if backend == "embree":
+            from .embree_backend import EmbreeBackend
+
+            self.backend: Backend = EmbreeBackend(self.triangles, threads)
+        elif backend == "open3d":
             from .open3d_backend import Open3DBackend
 
-            self.backend: Backend = Open3DBackend(self.triangles, threads)
+            self.backend = Open3DBackend(self.triangles, threads)
         else:
             from .reference import ReferenceBackend
 
@@ -441,8 +473,16 @@ class HouseTracer:
                               (the same hits as tracing all and dropping the others)
         """
         rays = Rays.check(origins, directions)
-        ray, face = self.backend.intersect_all(rays, self._instance_mask(instances))
-        return _collect_hits(self.triangles, rays, ray, face)
+        return self._hits(rays, self._instance_mask(instances))
+
+    def _hits(self, rays: Rays, instances: np.ndarray | None, cutoff: np.ndarray | None = None) -> Hits:
+        """:class:`Hits` of the rays among ``instances``, up to ``cutoff`` (n,) when given:
+        collected by the engine where it can, else from its crossings here."""
+        collect = getattr(self.backend, "collect", None)
+        if collect is not None:
+            return collect(rays, instances, cutoff)
+        ray, face = self.backend.intersect_all(rays, instances, t_max=cutoff)
+        return _collect_hits(self.triangles, rays, ray, face, cutoff)
 
     def _instance_mask(self, instances) -> np.ndarray | None:
         """``instances`` checked to be (n_instances,) bool, or None."""
@@ -473,31 +513,39 @@ class HouseTracer:
                               (default: the house's envelope); the overhead view passes floors
         envelope_near       : envelope hits nearer than this are ignored (metres along the ray)
         """
-        rays, closing, ray, face, cutoff = self._frontal_crossings(origins, directions, objects, envelope,
-                                                                   envelope_near)
-        return FrontalHits(_collect_hits(self.triangles, rays, ray, face, cutoff), closing)
+        frontal = getattr(self.backend, "frontal", None)
+        if frontal is not None:  # the engine does both passes itself, ray by ray
+            rays = Rays.check(origins, directions)
+            return frontal(rays, *self._frontal_masks(objects, envelope), envelope_near)
+        rays, objects, closing, cutoff = self._frontal_setup(origins, directions, objects, envelope, envelope_near)
+        return FrontalHits(self._hits(rays, objects, cutoff), closing)
 
     def frontal_hits(self, origins, directions, objects=None, envelope=None, envelope_near: float = 0.0) -> Hits:
         """The hits of :meth:`frontal_query` as one :class:`Hits` (closing hits sorted in
         among the object hits): the subset of :meth:`all_hits` the layer rules use.
         Arguments as for :meth:`frontal_query`."""
-        rays, closing, ray, face, cutoff = self._frontal_crossings(origins, directions, objects, envelope,
-                                                                   envelope_near)
+        rays, objects, closing, cutoff = self._frontal_setup(origins, directions, objects, envelope, envelope_near)
+        ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
         walled = np.flatnonzero(closing.face >= 0)
         return _collect_hits(self.triangles, rays, np.r_[ray, walled], np.r_[face, closing.face[walled]], cutoff)
 
-    def _frontal_crossings(self, origins, directions, objects, envelope, envelope_near: float):
-        """What both frontal queries start from: the checked rays, their closing hits, the
-        engine's object crossings that may lie before the cut-off, and the cut-off (n,)
-        (closing distance + slack; inf where nothing closes the ray)."""
+    def _frontal_setup(self, origins, directions, objects, envelope, envelope_near: float):
+        """What both frontal queries start from: the checked rays, the object mask, their
+        closing hits and the cut-off (n,) (closing distance + slack; inf where nothing
+        closes the ray)."""
         rays = Rays.check(origins, directions)
-        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
-        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        objects, envelope = self._frontal_masks(objects, envelope)
         closing = self._closing(rays, envelope, envelope_near)
         cutoff = closing.t + tol.envelope_slack
         cutoff[np.isnan(cutoff)] = np.inf
-        ray, face = self.backend.intersect_all(rays, objects, t_max=cutoff)
-        return rays, closing, ray, face, cutoff
+        return rays, objects, closing, cutoff
+
+    def _frontal_masks(self, objects, envelope) -> tuple[np.ndarray, np.ndarray]:
+        """The (n_instances,) bool object and closing masks of a frontal query (defaults:
+        the non-envelope instances and the envelope)."""
+        objects = ~self.triangles.envelope if objects is None else np.asarray(objects, dtype=bool)
+        envelope = self.triangles.envelope if envelope is None else np.asarray(envelope, dtype=bool)
+        return objects, envelope
 
     def _closing(self, rays: Rays, envelope: np.ndarray, envelope_near: float) -> FirstHit:
         """Each ray's first hit among the ``envelope`` instances at least ``envelope_near``

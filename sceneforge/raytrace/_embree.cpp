@@ -1,0 +1,822 @@
+// sceneforge.raytrace._embree: every hit of a ray in one Embree traversal, collected in C++.
+//
+// The Python side (embree_backend.py) owns the interface; this module only traces. It
+// mirrors what sceneforge/raytrace/__init__.py does in numpy after an engine has answered,
+// operation for operation, so that both give bit-identical hits:
+//
+//   * one Embree geometry per house instance, robust scenes, float32 vertices and rays
+//     shifted to the house centre (exactly as the Open3D engine feeds Embree);
+//   * a filter callback that rejects every hit (so the traversal goes on) after recording
+//     it with its float64 plane distance `(offset - n.o) / (n.d)`, each dot product summed
+//     x, y, z, as `_plane_distance` computes it (build with -ffp-contract=off: no FMA);
+//   * Open3D's own list rule too: a hit of the same geometry as the last one reported on
+//     the ray, at the same float32 distance or of the same triangle, is left out;
+//   * the traversal stops at `cutoff + margin` (the ray's closing hit, found by a
+//     first-hit pass, plus slack), and hits beyond `cutoff` are dropped;
+//   * per ray, hits are sorted by the same float key `_order_by_ray_and_distance` uses,
+//     then by face, and same-instance repeats are dropped as `_same_instance_repeats` does;
+//   * the CSR arrays of `Hits` are written directly.
+//
+// Rays are traced in fixed blocks, each block's output kept apart and joined in block
+// order: the result does not depend on the thread count.
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+// setup.py defines SF_EMBREE4 when it builds against Embree 4 (its headers and library)
+#ifdef SF_EMBREE4
+#include <embree4/rtcore.h>
+#else
+#include <embree3/rtcore.h>
+#endif
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <deque>
+#include <limits>
+#include <string>
+#include <thread>
+#include <vector>
+
+#if RTC_VERSION_MAJOR >= 4
+#define SF_FILTER_SCENE_FLAG RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
+typedef RTCRayQueryContext SFContextBase;
+#else
+#define SF_FILTER_SCENE_FLAG RTC_SCENE_FLAG_CONTEXT_FILTER_FUNCTION
+typedef RTCIntersectContext SFContextBase;
+#endif
+
+namespace {
+
+// rays per block: small enough to balance two threads on a 320x240 view, large enough
+// that a block's bookkeeping is negligible
+constexpr int64_t kBlock = 512;
+
+struct HitRecord {
+    double t;
+    double cos;
+    int64_t face;
+};
+
+// What the filter callback needs. The Embree context must come first: Embree hands the
+// callback a pointer to it.
+struct Collector {
+    SFContextBase base;
+    const int64_t* face_base;  // first face (house index) of each geometry of the scene
+    const double* normal_x;
+    const double* normal_y;
+    const double* normal_z;
+    const double* offset;
+    double ox, oy, oz;       // the ray, float64, unshifted
+    double dx, dy, dz;
+    double cutoff;           // hits farther than this are dropped (inf: none)
+    double limit32;          // engine distances farther than this are not kept
+    bool raw;                // keep every crossing (no plane-distance test)
+    std::vector<HitRecord>* out;
+    // the last hit reported on this ray in this scene (Open3D's rule, see collect_filter)
+    unsigned int previous_geom, previous_prim;
+    float previous_t;
+};
+
+void collect_filter(const RTCFilterFunctionNArguments* args) {
+    Collector* c = reinterpret_cast<Collector*>(args->context);
+    for (unsigned int i = 0; i < args->N; ++i) {
+        if (args->valid[i] != -1) continue;
+        args->valid[i] = 0;  // reject: the traversal goes on to the next hit
+        const float t32 = RTCRayN_tfar(args->ray, args->N, i);
+        const unsigned int geom = RTCHitN_geomID(args->hit, args->N, i);
+        const unsigned int prim = RTCHitN_primID(args->hit, args->N, i);
+        // Open3D's list_intersections leaves out a hit of the same geometry as the last
+        // one it reported on the ray, at the same float32 distance or of the same
+        // triangle (two coplanar triangles of one instance: it names the first met).
+        // The same rule here keeps the hits bit-identical to that engine's.
+        if (geom == c->previous_geom && (prim == c->previous_prim || t32 == c->previous_t)) continue;
+        c->previous_geom = geom, c->previous_prim = prim, c->previous_t = t32;
+        if (static_cast<double>(t32) > c->limit32) continue;
+        const int64_t face = c->face_base[geom] + prim;
+        if (c->raw) {
+            c->out->push_back({0.0, 0.0, face});
+            continue;
+        }
+        const double numerator = c->offset[face] - (c->normal_x[face] * c->ox + c->normal_y[face] * c->oy +
+                                                    c->normal_z[face] * c->oz);
+        const double cos = c->normal_x[face] * c->dx + c->normal_y[face] * c->dy + c->normal_z[face] * c->dz;
+        const double t = numerator / cos;
+        if (!std::isfinite(t) || !(t <= c->cutoff)) continue;
+        c->out->push_back({t, cos, face});
+    }
+}
+
+struct Scene {
+    RTCScene scene = nullptr;
+    std::vector<int64_t> face_base;  // per geometry
+};
+
+struct EngineObject {
+    PyObject_HEAD
+    RTCDevice device;
+    int threads;
+    std::deque<Scene>* scenes;  // a deque: adding a scene keeps the others in place (queries run without the GIL)
+    // float64 copies of the house the callbacks read (plane terms, triangles)
+    std::vector<double>* normal_xyz;  // (3, m)
+    std::vector<double>* offset;      // (m,)
+    std::vector<int32_t>* instance;   // (m,) owning instance of each face
+    std::vector<int64_t>* first_face; // (n_instances + 1,)
+    std::vector<double>* vertices;    // (v, 3) float64, unshifted
+    std::vector<int64_t>* faces;      // (m, 3)
+    double shift[3];
+};
+
+// ------------------------------------------------------------------ buffers
+
+struct Buffer {
+    Py_buffer view{};
+    bool held = false;
+    ~Buffer() {
+        if (held) PyBuffer_Release(&view);
+    }
+};
+
+// A C-contiguous buffer of `count` items of `itemsize` bytes (count < 0: any).
+bool get_buffer(PyObject* obj, Buffer& b, Py_ssize_t itemsize, Py_ssize_t count, const char* name) {
+    if (PyObject_GetBuffer(obj, &b.view, PyBUF_C_CONTIGUOUS) != 0) return false;
+    b.held = true;
+    if (b.view.len % itemsize != 0 || (count >= 0 && b.view.len != count * itemsize)) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd items of %zd bytes, got %zd bytes", name, count, itemsize,
+                     b.view.len);
+        return false;
+    }
+    return true;
+}
+
+PyObject* new_bytearray(const void* data, size_t bytes) {
+    PyObject* out = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(bytes));
+    if (out && bytes) std::memcpy(PyByteArray_AS_STRING(out), data, bytes);
+    return out;
+}
+
+// Rays as the queries read them: float64 rows, each of origins and directions either one
+// row shared by every ray or one row per ray.
+struct RayRows {
+    const double* o;
+    const double* d;
+    bool o_shared, d_shared;
+    int64_t n;
+    const double* origin(int64_t r) const { return o + (o_shared ? 0 : 3 * r); }
+    const double* direction(int64_t r) const { return d + (d_shared ? 0 : 3 * r); }
+};
+
+bool get_rays(PyObject* origins, PyObject* directions, Py_ssize_t n, Buffer& bo, Buffer& bd, RayRows& rays) {
+    if (!get_buffer(origins, bo, 3 * sizeof(double), -1, "origins")) return false;
+    if (!get_buffer(directions, bd, 3 * sizeof(double), -1, "directions")) return false;
+    const Py_ssize_t no = bo.view.len / (3 * sizeof(double)), nd = bd.view.len / (3 * sizeof(double));
+    if ((no != 1 && no != n) || (nd != 1 && nd != n) || (n > 0 && (no == 0 || nd == 0))) {
+        PyErr_Format(PyExc_ValueError, "rays: %zd origin rows and %zd direction rows for %zd rays", no, nd, n);
+        return false;
+    }
+    rays = {static_cast<const double*>(bo.view.buf), static_cast<const double*>(bd.view.buf), no == 1 && n != 1,
+            nd == 1 && n != 1, n};
+    return true;
+}
+
+bool get_scene_ids(EngineObject* self, PyObject* ids, std::vector<const Scene*>& out) {
+    PyObject* seq = PySequence_Fast(ids, "scene ids must be a sequence");
+    if (!seq) return false;
+    const Py_ssize_t k = PySequence_Fast_GET_SIZE(seq);
+    for (Py_ssize_t i = 0; i < k; ++i) {
+        const long id = PyLong_AsLong(PySequence_Fast_GET_ITEM(seq, i));
+        if (id < 0 || id >= static_cast<long>(self->scenes->size())) {
+            Py_DECREF(seq);
+            if (!PyErr_Occurred()) PyErr_SetString(PyExc_IndexError, "no such scene");
+            return false;
+        }
+        out.push_back(&(*self->scenes)[id]);
+    }
+    Py_DECREF(seq);
+    return true;
+}
+
+// Run `work(block)` for every block of rays on `threads` threads (blocks handed out in
+// order; which thread runs a block does not matter to the result).
+template <class F>
+void parallel_blocks(int64_t n_blocks, int threads, F&& work) {
+    const int t = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, n_blocks)));
+    if (t == 1) {
+        for (int64_t b = 0; b < n_blocks; ++b) work(b);
+        return;
+    }
+    std::atomic<int64_t> next{0};
+    std::vector<std::thread> pool;
+    pool.reserve(t);
+    for (int i = 0; i < t; ++i)
+        pool.emplace_back([&]() {
+            for (int64_t b; (b = next.fetch_add(1)) < n_blocks;) work(b);
+        });
+    for (auto& th : pool) th.join();
+}
+
+void set_ray(RTCRayHit& rh, const EngineObject* e, const double* o, const double* d, float tfar) {
+    // the same float64 -> float32 conversions as the Open3D engine's query tensor
+    rh.ray.org_x = static_cast<float>(o[0] - e->shift[0]);
+    rh.ray.org_y = static_cast<float>(o[1] - e->shift[1]);
+    rh.ray.org_z = static_cast<float>(o[2] - e->shift[2]);
+    rh.ray.dir_x = static_cast<float>(d[0]);
+    rh.ray.dir_y = static_cast<float>(d[1]);
+    rh.ray.dir_z = static_cast<float>(d[2]);
+    rh.ray.tnear = 0.0f;
+    rh.ray.tfar = tfar;
+    rh.ray.mask = 0xFFFFFFFFu;
+    rh.ray.flags = 0;
+    rh.ray.time = 0.0f;
+    rh.ray.id = 0;
+    rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+}
+
+// One rtcIntersect1 of `scene` through the collector's filter.
+void intersect_collecting(const Scene* s, Collector& c, RTCRayHit& rh) {
+    c.face_base = s->face_base.data();
+    c.previous_geom = RTC_INVALID_GEOMETRY_ID, c.previous_prim = RTC_INVALID_GEOMETRY_ID, c.previous_t = 0.0f;
+#if RTC_VERSION_MAJOR >= 4
+    RTCIntersectArguments args;
+    rtcInitIntersectArguments(&args);
+    args.context = &c.base;
+    args.filter = collect_filter;
+    args.flags = static_cast<RTCRayQueryFlags>(args.flags | RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER);
+    rtcIntersect1(s->scene, &rh, &args);
+#else
+    rtcIntersect1(s->scene, &c.base, &rh);
+#endif
+}
+
+void intersect_nearest(const Scene* s, RTCRayHit& rh) {
+#if RTC_VERSION_MAJOR >= 4
+    rtcIntersect1(s->scene, &rh);
+#else
+    RTCIntersectContext context;
+    rtcInitIntersectContext(&context);
+    rtcIntersect1(s->scene, &context, &rh);
+#endif
+}
+
+void init_collector(Collector& c, const EngineObject* e) {
+#if RTC_VERSION_MAJOR >= 4
+    rtcInitRayQueryContext(&c.base);
+#else
+    rtcInitIntersectContext(&c.base);
+    c.base.filter = collect_filter;
+#endif
+    const int64_t m = static_cast<int64_t>(e->offset->size());
+    c.normal_x = e->normal_xyz->data();
+    c.normal_y = c.normal_x + m;
+    c.normal_z = c.normal_y + m;
+    c.offset = e->offset->data();
+}
+
+// ------------------------------------------------------------------ the engine type
+
+void engine_dealloc(EngineObject* self) {
+    if (self->scenes) {
+        for (auto& s : *self->scenes) rtcReleaseScene(s.scene);
+        delete self->scenes;
+    }
+    delete self->normal_xyz;
+    delete self->offset;
+    delete self->instance;
+    delete self->first_face;
+    delete self->vertices;
+    delete self->faces;
+    if (self->device) rtcReleaseDevice(self->device);
+    Py_TYPE(self)->tp_free(reinterpret_cast<PyObject*>(self));
+}
+
+template <class T>
+bool copy_buffer(PyObject* obj, std::vector<T>*& out, Py_ssize_t count, const char* name) {
+    Buffer b;
+    if (!get_buffer(obj, b, sizeof(T), count, name)) return false;
+    const T* p = static_cast<const T*>(b.view.buf);
+    out = new std::vector<T>(p, p + b.view.len / sizeof(T));
+    return true;
+}
+
+// Engine(threads, vertices (v,3) f8, faces (m,3) i8, instance (m,) i4, first_face (n+1,) i8,
+//        normal_xyz (3,m) f8, offset (m,) f8, shift (3,) f8)
+int engine_init(EngineObject* self, PyObject* args, PyObject*) {
+    int threads;
+    PyObject *vertices, *faces, *instance, *first_face, *normal_xyz, *offset, *shift;
+    if (!PyArg_ParseTuple(args, "iOOOOOOO", &threads, &vertices, &faces, &instance, &first_face, &normal_xyz,
+                          &offset, &shift))
+        return -1;
+    if (threads < 1) {
+        PyErr_SetString(PyExc_ValueError, "threads must be >= 1");
+        return -1;
+    }
+    self->threads = threads;
+    self->scenes = new std::deque<Scene>();
+    if (!copy_buffer(vertices, self->vertices, -1, "vertices") || !copy_buffer(faces, self->faces, -1, "faces"))
+        return -1;
+    const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
+    if (!copy_buffer(instance, self->instance, m, "instance") ||
+        !copy_buffer(first_face, self->first_face, -1, "first_face") ||
+        !copy_buffer(normal_xyz, self->normal_xyz, 3 * m, "normal_xyz") ||
+        !copy_buffer(offset, self->offset, m, "offset"))
+        return -1;
+    Buffer bs;
+    if (!get_buffer(shift, bs, sizeof(double), 3, "shift")) return -1;
+    std::memcpy(self->shift, bs.view.buf, sizeof(self->shift));
+    const std::string config = "threads=" + std::to_string(threads);
+    self->device = rtcNewDevice(config.c_str());
+    if (!self->device) {
+        PyErr_Format(PyExc_RuntimeError, "Embree: cannot create a device (error %d)", rtcGetDeviceError(nullptr));
+        return -1;
+    }
+    return 0;
+}
+
+// add_scene(members (g,) i8, first_vertex (n+1,) i8) -> scene id: one geometry per member
+// instance, in the given order, robust, as the Open3D engine builds its scenes.
+PyObject* engine_add_scene(EngineObject* self, PyObject* args) {
+    PyObject *members_obj, *first_vertex_obj;
+    if (!PyArg_ParseTuple(args, "OO", &members_obj, &first_vertex_obj)) return nullptr;
+    Buffer bm, bv;
+    if (!get_buffer(members_obj, bm, sizeof(int64_t), -1, "members") ||
+        !get_buffer(first_vertex_obj, bv, sizeof(int64_t), static_cast<Py_ssize_t>(self->first_face->size()),
+                    "first_vertex"))
+        return nullptr;
+    const int64_t* members = static_cast<const int64_t*>(bm.view.buf);
+    const int64_t* fv = static_cast<const int64_t*>(bv.view.buf);
+    const int64_t* ff = self->first_face->data();
+    const int64_t n_members = bm.view.len / sizeof(int64_t);
+    const int64_t n_instances = static_cast<int64_t>(self->first_face->size()) - 1;
+    Scene s;
+    s.scene = rtcNewScene(self->device);
+    rtcSetSceneFlags(s.scene, static_cast<RTCSceneFlags>(RTC_SCENE_FLAG_ROBUST | SF_FILTER_SCENE_FLAG));
+    const double* V = self->vertices->data();
+    const int64_t* F = self->faces->data();
+    for (int64_t k = 0; k < n_members; ++k) {
+        const int64_t i = members[k];
+        if (i < 0 || i >= n_instances) {
+            rtcReleaseScene(s.scene);
+            PyErr_SetString(PyExc_IndexError, "member instance out of range");
+            return nullptr;
+        }
+        RTCGeometry g = rtcNewGeometry(self->device, RTC_GEOMETRY_TYPE_TRIANGLE);
+        const int64_t nv = fv[i + 1] - fv[i], nf = ff[i + 1] - ff[i];
+        float* vb = static_cast<float*>(
+            rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), nv));
+        unsigned* ib = static_cast<unsigned*>(
+            rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(unsigned), nf));
+        for (int64_t v = 0; v < nv; ++v)
+            for (int a = 0; a < 3; ++a) vb[3 * v + a] = static_cast<float>(V[3 * (fv[i] + v) + a] - self->shift[a]);
+        for (int64_t f = 0; f < nf; ++f)
+            for (int a = 0; a < 3; ++a) ib[3 * f + a] = static_cast<unsigned>(F[3 * (ff[i] + f) + a] - fv[i]);
+        rtcCommitGeometry(g);
+        rtcAttachGeometry(s.scene, g);  // ids 0, 1, ... in attach order
+        rtcReleaseGeometry(g);
+        s.face_base.push_back(ff[i]);
+    }
+    Py_BEGIN_ALLOW_THREADS
+    rtcCommitScene(s.scene);
+    Py_END_ALLOW_THREADS
+    const RTCError err = rtcGetDeviceError(self->device);
+    if (err != RTC_ERROR_NONE) {
+        rtcReleaseScene(s.scene);
+        PyErr_Format(PyExc_RuntimeError, "Embree: building the scene failed (error %d)", static_cast<int>(err));
+        return nullptr;
+    }
+    self->scenes->push_back(std::move(s));
+    return PyLong_FromSsize_t(static_cast<Py_ssize_t>(self->scenes->size()) - 1);
+}
+
+// The nearest face (house index) of one ray over the scenes, -1 where none; at equal
+// engine distance the earlier scene's hit stays (as the Open3D engine's intersect_first).
+int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d) {
+    float nearest = std::numeric_limits<float>::infinity();
+    int64_t face = -1;
+    for (const Scene* s : scenes) {
+        RTCRayHit rh;
+        set_ray(rh, e, o, d, std::numeric_limits<float>::infinity());
+        intersect_nearest(s, rh);
+        if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID && rh.ray.tfar < nearest) {
+            nearest = rh.ray.tfar;
+            face = s->face_base[rh.hit.geomID] + rh.hit.primID;
+        }
+    }
+    return face;
+}
+
+// first(scene_ids, n, origins, directions) -> bytearray (n,) i8: the nearest face of each
+// ray over the scenes (-1: none); at equal engine distance the earlier scene's hit stays.
+PyObject* engine_first(EngineObject* self, PyObject* args) {
+    PyObject *ids, *origins, *directions;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "OnOO", &ids, &n, &origins, &directions)) return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bo, bd;
+    RayRows rays;
+    if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
+    PyObject* out = PyByteArray_FromStringAndSize(nullptr, n * static_cast<Py_ssize_t>(sizeof(int64_t)));
+    if (!out) return nullptr;
+    int64_t* face = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out));
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks((n + kBlock - 1) / kBlock, self->threads, [&](int64_t b) {
+        const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
+        for (int64_t r = b * kBlock; r < hi; ++r) face[r] = nearest_face(self, scenes, rays.origin(r), rays.direction(r));
+    });
+    Py_END_ALLOW_THREADS
+    return out;
+}
+
+// One ray's closing hit, as HouseTracer._closing and _first_hit make it from an engine's
+// nearest faces: the nearest face among the closing scenes; where its plane distance is
+// below `near`, the nearest face seen again from `near` along the ray (origin + near * d,
+// as numpy computes it); then the plane distance and cosine of that face from the ray's
+// own origin. t is NaN and cos 0 where nothing closes the ray.
+void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d,
+                 double near, const Collector& planes, int64_t& face, double& t, double& cos) {
+    face = nearest_face(e, scenes, o, d);
+    auto plane = [&](int64_t f) {
+        const double numerator = planes.offset[f] - (planes.normal_x[f] * o[0] + planes.normal_y[f] * o[1] +
+                                                     planes.normal_z[f] * o[2]);
+        cos = planes.normal_x[f] * d[0] + planes.normal_y[f] * d[1] + planes.normal_z[f] * d[2];
+        t = numerator / cos;
+    };
+    if (face >= 0) plane(face);
+    if (near > 0 && face >= 0 && t < near) {
+        const double moved[3] = {o[0] + near * d[0], o[1] + near * d[1], o[2] + near * d[2]};
+        face = nearest_face(e, scenes, moved, d);
+        if (face >= 0) plane(face);
+    }
+    if (face < 0) t = std::numeric_limits<double>::quiet_NaN(), cos = 0.0;
+}
+
+struct BlockHits {
+    std::vector<HitRecord> hits;  // grouped by ray, in ray order
+    std::vector<int64_t> counts;  // per ray of the block
+    double t_min = std::numeric_limits<double>::infinity();
+    double t_max = -std::numeric_limits<double>::infinity();
+};
+
+// collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw
+//         [, closing_ids, near, slack])
+//   cutoff : None or (n,) f8; hits farther along ray r than cutoff[r] are dropped, and the
+//            traversal stops at cutoff[r] + margin (engine distance)
+//   raw    : True: every crossing, unordered -> (ray i8, face i8) bytearrays
+//            False: the CSR arrays of Hits -> (offsets i8, t f8, instance i4, triangle i8,
+//            front_facing bool) bytearrays
+//   closing_ids : with cutoff None, the scenes that close a ray: each ray's closing hit is
+//            found first (closing_hit, from `near` on) and its cutoff is the closing
+//            distance + slack (inf where none); five more bytearrays follow the Hits ones,
+//            the closing hits: face i8, t f8, instance i4, triangle i8, front_facing bool
+PyObject* engine_collect(EngineObject* self, PyObject* args) {
+    PyObject *ids, *origins, *directions, *cutoff_obj, *closing_obj = Py_None;
+    Py_ssize_t n;
+    double margin, tol, near = 0.0, slack = 0.0;
+    int raw;
+    if (!PyArg_ParseTuple(args, "OnOOOddp|Odd", &ids, &n, &origins, &directions, &cutoff_obj, &margin, &tol, &raw,
+                          &closing_obj, &near, &slack))
+        return nullptr;
+    std::vector<const Scene*> scenes, closing_scenes;
+    Buffer bo, bd, bc;
+    RayRows rays;
+    if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
+    const double* cutoff = nullptr;
+    if (cutoff_obj != Py_None) {
+        if (!get_buffer(cutoff_obj, bc, sizeof(double), n, "cutoff")) return nullptr;
+        cutoff = static_cast<const double*>(bc.view.buf);
+    }
+    const bool closing = closing_obj != Py_None;
+    if (closing && (cutoff || raw)) {
+        PyErr_SetString(PyExc_ValueError, "closing scenes need cutoff None and raw False");
+        return nullptr;
+    }
+    if (closing && !get_scene_ids(self, closing_obj, closing_scenes)) return nullptr;
+    std::vector<int64_t> closing_face(closing ? n : 0);
+    std::vector<double> closing_t(closing ? n : 0), closing_cos(closing ? n : 0);
+    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
+    std::vector<BlockHits> blocks(n_blocks);
+    const double inf = std::numeric_limits<double>::infinity();
+
+    Py_BEGIN_ALLOW_THREADS
+    // pass 1: trace, keeping each ray's hits (within the cut-off) with their distances
+    parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
+        BlockHits& out = blocks[b];
+        const int64_t lo = b * kBlock, hi = std::min<int64_t>(n, lo + kBlock);
+        out.counts.assign(hi - lo, 0);
+        Collector c;
+        init_collector(c, self);
+        c.raw = raw != 0;
+        c.out = &out.hits;
+        for (int64_t r = lo; r < hi; ++r) {
+            const double* o = rays.origin(r);
+            const double* d = rays.direction(r);
+            c.ox = o[0], c.oy = o[1], c.oz = o[2];
+            c.dx = d[0], c.dy = d[1], c.dz = d[2];
+            if (closing) {
+                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], closing_cos[r]);
+                c.cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
+            } else {
+                c.cutoff = cutoff ? cutoff[r] : inf;
+            }
+            // what the Open3D engine keeps of its float32 distances: t <= cutoff + margin
+            c.limit32 = c.cutoff + margin;
+            float tfar = static_cast<float>(c.limit32);
+            if (static_cast<double>(tfar) < c.limit32) tfar = std::nextafter(tfar, std::numeric_limits<float>::infinity());
+            const size_t before = out.hits.size();
+            for (const Scene* s : scenes) {
+                RTCRayHit rh;
+                set_ray(rh, self, o, d, tfar);
+                intersect_collecting(s, c, rh);
+            }
+            out.counts[r - lo] = static_cast<int64_t>(out.hits.size() - before);
+            if (!raw)
+                for (size_t k = before; k < out.hits.size(); ++k) {
+                    out.t_min = std::min(out.t_min, out.hits[k].t);
+                    out.t_max = std::max(out.t_max, out.hits[k].t);
+                }
+        }
+    });
+    Py_END_ALLOW_THREADS
+
+    int64_t total = 0;
+    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+
+    if (raw) {
+        std::vector<int64_t> ray(total), face(total);
+        int64_t k = 0;
+        for (int64_t b = 0; b < n_blocks; ++b) {
+            const auto& blk = blocks[b];
+            size_t h = 0;
+            for (size_t j = 0; j < blk.counts.size(); ++j)
+                for (int64_t c = 0; c < blk.counts[j]; ++c, ++h, ++k) {
+                    ray[k] = b * kBlock + static_cast<int64_t>(j);
+                    face[k] = blk.hits[h].face;
+                }
+        }
+        PyObject* a = new_bytearray(ray.data(), total * sizeof(int64_t));
+        PyObject* f = new_bytearray(face.data(), total * sizeof(int64_t));
+        if (!a || !f) {
+            Py_XDECREF(a);
+            Py_XDECREF(f);
+            return nullptr;
+        }
+        return Py_BuildValue("(NN)", a, f);
+    }
+
+    // pass 2: order each ray's hits as `_order_by_ray_and_distance` does -- by the float key
+    // ray * (span + 1) + (t - t_min) over the whole batch, exact key ties by face -- and drop
+    // same-instance repeats as `_same_instance_repeats` does
+    double t0 = inf, t1 = -inf;
+    for (auto& b : blocks) t0 = std::min(t0, b.t_min), t1 = std::max(t1, b.t_max);
+    const double span = (t1 - t0) + 1.0;
+    const int32_t* face_instance = self->instance->data();
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
+        BlockHits& blk = blocks[b];
+        std::vector<std::pair<double, int64_t>> keyed;  // (key, position in the ray's hits)
+        std::vector<HitRecord> sorted;
+        std::vector<HitRecord> kept;
+        kept.reserve(blk.hits.size());
+        size_t h = 0;
+        for (size_t j = 0; j < blk.counts.size(); ++j) {
+            const int64_t count = blk.counts[j];
+            const double r = static_cast<double>(b * kBlock + static_cast<int64_t>(j));
+            HitRecord* hits = blk.hits.data() + h;
+            h += count;
+            if (count == 0) continue;
+            keyed.resize(count);
+            for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
+            std::sort(keyed.begin(), keyed.end(), [&](const auto& x, const auto& y) {
+                if (x.first != y.first) return x.first < y.first;
+                return hits[x.second].face < hits[y.second].face;
+            });
+            sorted.resize(count);
+            for (int64_t k = 0; k < count; ++k) sorted[k] = hits[keyed[k].second];
+            int64_t n_kept = 0;
+            for (int64_t k = 0; k < count; ++k) {
+                // a repeat: within tol after an earlier hit of the same instance, every hit
+                // in between also within tol of this one
+                bool repeat = false;
+                const int32_t inst = face_instance[sorted[k].face];
+                for (int64_t s = k - 1; s >= 0 && sorted[k].t - sorted[s].t <= tol; --s)
+                    if (face_instance[sorted[s].face] == inst) {
+                        repeat = true;
+                        break;
+                    }
+                if (!repeat) kept.push_back(sorted[k]), ++n_kept;
+            }
+            blk.counts[j] = n_kept;
+        }
+        blk.hits.swap(kept);
+    });
+    Py_END_ALLOW_THREADS
+
+    total = 0;
+    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+    PyObject* offsets_b = PyByteArray_FromStringAndSize(nullptr, (n + 1) * sizeof(int64_t));
+    PyObject* t_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(double));
+    PyObject* inst_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int32_t));
+    PyObject* tri_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int64_t));
+    PyObject* front_b = PyByteArray_FromStringAndSize(nullptr, total);
+    if (!offsets_b || !t_b || !inst_b || !tri_b || !front_b) {
+        Py_XDECREF(offsets_b);
+        Py_XDECREF(t_b);
+        Py_XDECREF(inst_b);
+        Py_XDECREF(tri_b);
+        Py_XDECREF(front_b);
+        return nullptr;
+    }
+    int64_t* offsets = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(offsets_b));
+    double* t = reinterpret_cast<double*>(PyByteArray_AS_STRING(t_b));
+    int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(inst_b));
+    int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(tri_b));
+    bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(front_b));
+    const int64_t* first_face = self->first_face->data();
+    int64_t k = 0;
+    offsets[0] = 0;
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        const auto& blk = blocks[b];
+        for (size_t j = 0; j < blk.counts.size(); ++j) {
+            const int64_t r = b * kBlock + static_cast<int64_t>(j);
+            offsets[r + 1] = offsets[r] + blk.counts[j];
+        }
+        for (const auto& hit : blk.hits) {
+            const int32_t inst = face_instance[hit.face];
+            t[k] = hit.t;
+            instance[k] = inst;
+            triangle[k] = hit.face - first_face[inst];
+            front[k] = hit.cos < 0;
+            ++k;
+        }
+    }
+    if (!closing) return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
+    std::vector<int32_t> c_inst(n);
+    std::vector<int64_t> c_tri(n);
+    std::vector<char> c_front(n);
+    for (int64_t r = 0; r < n; ++r) {
+        const int64_t f = closing_face[r];
+        c_inst[r] = f >= 0 ? face_instance[f] : -1;
+        c_tri[r] = f >= 0 ? f - first_face[c_inst[r]] : -1;
+        c_front[r] = closing_cos[r] < 0;
+    }
+    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b,
+                         new_bytearray(closing_face.data(), n * sizeof(int64_t)),
+                         new_bytearray(closing_t.data(), n * sizeof(double)),
+                         new_bytearray(c_inst.data(), n * sizeof(int32_t)),
+                         new_bytearray(c_tri.data(), n * sizeof(int64_t)), new_bytearray(c_front.data(), n));
+}
+
+// ------------------------------------------------------------------ closest distance
+
+struct ClosestQuery {
+    const EngineObject* engine;
+    const Scene* scene;
+    double p[3];  // the query point, float64, unshifted
+    double best;
+};
+
+inline double dot3(const double* a, const double* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+// Distance from p to triangle (a, b, c), float64 (Ericson, Real-Time Collision Detection 5.1.5).
+double point_triangle_distance(const double* p, const double* a, const double* b, const double* c) {
+    double ab[3], ac[3], ap[3], q[3];
+    for (int i = 0; i < 3; ++i) ab[i] = b[i] - a[i], ac[i] = c[i] - a[i], ap[i] = p[i] - a[i];
+    auto dist = [&](const double* x) {
+        const double u = p[0] - x[0], v = p[1] - x[1], w = p[2] - x[2];
+        return std::sqrt(u * u + v * v + w * w);
+    };
+    const double d1 = dot3(ab, ap), d2 = dot3(ac, ap);
+    if (d1 <= 0 && d2 <= 0) return dist(a);
+    double bp[3], cp[3];
+    for (int i = 0; i < 3; ++i) bp[i] = p[i] - b[i], cp[i] = p[i] - c[i];
+    const double d3 = dot3(ab, bp), d4 = dot3(ac, bp);
+    if (d3 >= 0 && d4 <= d3) return dist(b);
+    const double d5 = dot3(ab, cp), d6 = dot3(ac, cp);
+    if (d6 >= 0 && d5 <= d6) return dist(c);
+    const double vc = d1 * d4 - d3 * d2;
+    if (vc <= 0 && d1 >= 0 && d3 <= 0) {
+        const double v = d1 / (d1 - d3);
+        for (int i = 0; i < 3; ++i) q[i] = a[i] + v * ab[i];
+        return dist(q);
+    }
+    const double vb = d5 * d2 - d1 * d6;
+    if (vb <= 0 && d2 >= 0 && d6 <= 0) {
+        const double w = d2 / (d2 - d6);
+        for (int i = 0; i < 3; ++i) q[i] = a[i] + w * ac[i];
+        return dist(q);
+    }
+    const double va = d3 * d6 - d5 * d4;
+    if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0) {
+        const double w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
+        for (int i = 0; i < 3; ++i) q[i] = b[i] + w * (c[i] - b[i]);
+        return dist(q);
+    }
+    const double denom = 1.0 / (va + vb + vc);
+    const double v = vb * denom, w = vc * denom;
+    for (int i = 0; i < 3; ++i) q[i] = a[i] + ab[i] * v + ac[i] * w;
+    return dist(q);
+}
+
+// float32 radius that still contains every point within float64 distance d, allowing for
+// the float32 rounding of the shifted vertices and query point
+inline float search_radius(double d) { return static_cast<float>(d * (1.0 + 1e-5) + 1e-5); }
+
+bool closest_callback(RTCPointQueryFunctionArguments* args) {
+    ClosestQuery* q = static_cast<ClosestQuery*>(args->userPtr);
+    const int64_t face = q->scene->face_base[args->geomID] + args->primID;
+    const int64_t* F = q->engine->faces->data() + 3 * face;
+    const double* V = q->engine->vertices->data();
+    const double d = point_triangle_distance(q->p, V + 3 * F[0], V + 3 * F[1], V + 3 * F[2]);
+    if (d < q->best) {
+        q->best = d;
+        const float radius = search_radius(d);
+        if (radius < args->query->radius) {
+            args->query->radius = radius;
+            return true;
+        }
+    }
+    return false;
+}
+
+// closest(scene_ids, points (k,3) f8) -> bytearray (k,) f8: distance to the nearest triangle
+PyObject* engine_closest(EngineObject* self, PyObject* args) {
+    PyObject *ids, *points;
+    if (!PyArg_ParseTuple(args, "OO", &ids, &points)) return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bp;
+    if (!get_scene_ids(self, ids, scenes) || !get_buffer(points, bp, 3 * sizeof(double), -1, "points"))
+        return nullptr;
+    const int64_t k = bp.view.len / (3 * sizeof(double));
+    const double* P = static_cast<const double*>(bp.view.buf);
+    std::vector<double> out(k);
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks((k + 63) / 64, self->threads, [&](int64_t b) {
+        for (int64_t i = b * 64; i < std::min<int64_t>(k, (b + 1) * 64); ++i) {
+            double best = std::numeric_limits<double>::infinity();
+            for (const Scene* s : scenes) {
+                ClosestQuery q{self, s, {P[3 * i], P[3 * i + 1], P[3 * i + 2]}, best};
+                RTCPointQuery query;
+                query.x = static_cast<float>(P[3 * i] - self->shift[0]);
+                query.y = static_cast<float>(P[3 * i + 1] - self->shift[1]);
+                query.z = static_cast<float>(P[3 * i + 2] - self->shift[2]);
+                query.time = 0.0f;
+                query.radius = std::isfinite(best) ? search_radius(best) : std::numeric_limits<float>::infinity();
+                RTCPointQueryContext context;
+                rtcInitPointQueryContext(&context);
+                rtcPointQuery(s->scene, &query, &context, closest_callback, &q);
+                best = q.best;
+            }
+            out[i] = best;
+        }
+    });
+    Py_END_ALLOW_THREADS
+    return new_bytearray(out.data(), k * sizeof(double));
+}
+
+PyMethodDef engine_methods[] = {
+    {"add_scene", reinterpret_cast<PyCFunction>(engine_add_scene), METH_VARARGS,
+     "add_scene(members, first_vertex) -> scene id"},
+    {"first", reinterpret_cast<PyCFunction>(engine_first), METH_VARARGS,
+     "first(scene_ids, n, origins, directions) -> nearest face per ray (int64 bytes)"},
+    {"collect", reinterpret_cast<PyCFunction>(engine_collect), METH_VARARGS,
+     "collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw) -> hit arrays (bytes)"},
+    {"closest", reinterpret_cast<PyCFunction>(engine_closest), METH_VARARGS,
+     "closest(scene_ids, points) -> distance per point (float64 bytes)"},
+    {nullptr, nullptr, 0, nullptr},
+};
+
+PyTypeObject EngineType = {PyVarObject_HEAD_INIT(nullptr, 0)};
+
+PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_embree",
+                          "Every hit of a ray in one Embree traversal; see sceneforge.raytrace.embree_backend.",
+                          -1, nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__embree(void) {
+    EngineType.tp_name = "sceneforge.raytrace._embree.Engine";
+    EngineType.tp_basicsize = sizeof(EngineObject);
+    EngineType.tp_flags = Py_TPFLAGS_DEFAULT;
+    EngineType.tp_doc = "Engine(threads, vertices, faces, instance, first_face, normal_xyz, offset, shift)";
+    EngineType.tp_new = PyType_GenericNew;
+    EngineType.tp_init = reinterpret_cast<initproc>(engine_init);
+    EngineType.tp_dealloc = reinterpret_cast<destructor>(engine_dealloc);
+    EngineType.tp_methods = engine_methods;
+    if (PyType_Ready(&EngineType) < 0) return nullptr;
+    PyObject* m = PyModule_Create(&module_def);
+    if (!m) return nullptr;
+    Py_INCREF(&EngineType);
+    if (PyModule_AddObject(m, "Engine", reinterpret_cast<PyObject*>(&EngineType)) < 0) {
+        Py_DECREF(&EngineType);
+        Py_DECREF(m);
+        return nullptr;
+    }
+    if (PyModule_AddStringConstant(m, "EMBREE_VERSION", RTC_VERSION_STRING) < 0) {
+        Py_DECREF(m);
+        return nullptr;
+    }
+    return m;
+}

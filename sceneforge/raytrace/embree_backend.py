@@ -1,0 +1,166 @@
+"""The default engine: Embree through sceneforge's own extension, :mod:`._embree` (float32).
+
+Open3D's ``list_intersections`` traverses every ray twice (a count pass to size its output,
+then a list pass), takes no far limit, and leaves distances, sorting and the merging of
+same-instance hits to numpy. The extension traverses each ray once, stops at the cut-off,
+and does the rest in its filter callback and per-ray pass, multi-threaded, writing the
+:class:`~sceneforge.raytrace.Hits` arrays directly (:meth:`EmbreeBackend.collect`).
+
+Its hits are bit-identical to the Open3D engine's: it builds the same Embree scenes (one
+geometry per instance, robust, envelope and objects apart, coordinates shifted to the
+house centre before the float32 conversion) and repeats the shared hit collection of
+:mod:`sceneforge.raytrace` operation for operation (see the comment atop ``_embree.cpp``).
+
+The extension is built at install time where a C++ compiler and Embree's headers are
+present (``setup.py``); :data:`AVAILABLE` says whether it was.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..conventions import tol
+from ..errors import MissingDependencyError
+from . import T_MAX_MARGIN, FirstHit, FrontalHits, Hits, HouseTriangles, Rays
+
+try:
+    from . import _embree
+except ImportError:  # not built (no compiler or no Embree headers at install time)
+    _embree = None
+
+#: whether the compiled extension is importable (the default engine then)
+AVAILABLE = _embree is not None
+
+
+def every_core() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+class EmbreeBackend:
+    name = "embree"
+
+    def __init__(self, triangles: HouseTriangles, threads: int = 0):
+        if _embree is None:
+            raise MissingDependencyError(
+                "sceneforge's Embree extension", "the embree ray-tracing engine",
+                "apt-get install libembree-dev g++, then pip install -e . again (see README)")
+        self._triangles = triangles
+        shift = 0.5 * (triangles.vertices.min(axis=0) + triangles.vertices.max(axis=0))
+        self._engine = _embree.Engine(
+            int(threads) or every_core(),
+            np.ascontiguousarray(triangles.vertices, dtype=np.float64),
+            np.ascontiguousarray(triangles.faces, dtype=np.int64),
+            np.ascontiguousarray(triangles.instance, dtype=np.int32),
+            np.ascontiguousarray(triangles.first_face, dtype=np.int64),
+            np.ascontiguousarray(triangles.normal_xyz, dtype=np.float64),
+            np.ascontiguousarray(triangles.offset, dtype=np.float64),
+            np.ascontiguousarray(shift, dtype=np.float64),
+        )
+        # subset mask bytes -> scene ids, objects before envelope (as the Open3D engine)
+        self._scenes: dict[bytes, tuple[int, ...]] = {}
+        for flag in (False, True):
+            self._selected(triangles.envelope == flag)
+
+    def _selected(self, instances: np.ndarray | None) -> tuple[int, ...]:
+        """The scenes a query on the ``instances`` (n,) bool mask (None = all) runs on."""
+        if instances is None:
+            return self._selected(~self._triangles.envelope) + self._selected(self._triangles.envelope)
+        instances = np.asarray(instances, dtype=bool)
+        key = instances.tobytes()
+        if key not in self._scenes:
+            envelope = self._triangles.envelope
+            self._scenes[key] = tuple(
+                self._engine.add_scene(members, self._triangles.first_vertex)
+                for flag in (False, True)
+                if len(members := np.flatnonzero(instances & (envelope == flag)).astype(np.int64))
+            )
+        return self._scenes[key]
+
+    @staticmethod
+    def _rows(rays: Rays) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and directions as the extension reads them: (1, 3) where shared, else (n, 3)."""
+        def rows(a):
+            return np.ascontiguousarray(a[:1] if len(a) and a.strides[0] == 0 else a)
+
+        return rows(rays.origins), rows(rays.directions)
+
+    def collect(self, rays: Rays, instances: np.ndarray | None = None, cutoff: np.ndarray | None = None) -> Hits:
+        """:class:`~sceneforge.raytrace.Hits` of the rays among ``instances`` (None: all),
+        up to ``cutoff`` (n,) float64 along each ray (None: no limit): what
+        ``_collect_hits`` makes of :meth:`intersect_all`, in one traversal per ray."""
+        n = len(rays)
+        if not n:
+            return _empty_hits(0)
+        o, d = self._rows(rays)
+        c = None if cutoff is None else np.ascontiguousarray(cutoff, dtype=np.float64)
+        offsets, t, instance, triangle, front = self._engine.collect(
+            self._selected(instances), n, o, d, c, T_MAX_MARGIN, tol.same_instance_hit, False)
+        return Hits(
+            offsets=np.frombuffer(offsets, dtype=np.int64),
+            t=np.frombuffer(t, dtype=np.float64),
+            instance=np.frombuffer(instance, dtype=np.int32),
+            triangle=np.frombuffer(triangle, dtype=np.int64),
+            front_facing=np.frombuffer(front, dtype=bool),
+        )
+
+    def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> FrontalHits:
+        """:meth:`HouseTracer.frontal_query <sceneforge.raytrace.HouseTracer.frontal_query>`
+        in one call: each ray's closing hit (first-hit pass) and then its object hits up
+        to that hit + ``tol.envelope_slack``, ray by ray, bit for bit what the tracer makes
+        of :meth:`intersect_first` and :meth:`collect`."""
+        n = len(rays)
+        if not n:
+            empty = FirstHit(np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros(0, bool),
+                             np.zeros(0, np.int64), self._triangles.normal)
+            return FrontalHits(_empty_hits(0), empty)
+        o, d = self._rows(rays)
+        out = self._engine.collect(self._selected(objects), n, o, d, None, T_MAX_MARGIN, tol.same_instance_hit,
+                                   False, self._selected(envelope), float(envelope_near), tol.envelope_slack)
+        offsets, t, instance, triangle, front, c_face, c_t, c_instance, c_triangle, c_front = out
+        hits = Hits(
+            offsets=np.frombuffer(offsets, dtype=np.int64),
+            t=np.frombuffer(t, dtype=np.float64),
+            instance=np.frombuffer(instance, dtype=np.int32),
+            triangle=np.frombuffer(triangle, dtype=np.int64),
+            front_facing=np.frombuffer(front, dtype=bool),
+        )
+        closing = FirstHit(
+            t=np.frombuffer(c_t, dtype=np.float64),
+            instance=np.frombuffer(c_instance, dtype=np.int32),
+            triangle=np.frombuffer(c_triangle, dtype=np.int64),
+            front_facing=np.frombuffer(c_front, dtype=bool),
+            face=np.frombuffer(c_face, dtype=np.int64),
+            face_normals=self._triangles.normal,
+        )
+        return FrontalHits(hits, closing)
+
+    def intersect_all(
+        self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if not len(rays):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        o, d = self._rows(rays)
+        c = None if t_max is None else np.ascontiguousarray(t_max, dtype=np.float64)
+        ray, face = self._engine.collect(self._selected(instances), len(rays), o, d, c, T_MAX_MARGIN, 0.0, True)
+        return np.frombuffer(ray, dtype=np.int64), np.frombuffer(face, dtype=np.int64)
+
+    def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
+        if not len(rays):
+            return np.full(0, -1, dtype=np.int64)
+        o, d = self._rows(rays)
+        return np.frombuffer(self._engine.first(self._selected(instances), len(rays), o, d), dtype=np.int64)
+
+    def closest_distance(self, points: np.ndarray) -> np.ndarray:
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        return np.frombuffer(self._engine.closest(self._selected(None), p), dtype=np.float64)
+
+
+def _empty_hits(n_rays: int) -> Hits:
+    return Hits(np.zeros(n_rays + 1, np.int64), np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int64),
+                np.zeros(0, bool))
