@@ -193,7 +193,7 @@ def time_views(house, cameras, tracer, config: ViewConfig, repeat: int) -> dict[
             t2 = time.perf_counter()
             overhead_truth(house, top, tracer, config.overhead)
             t3 = time.perf_counter()
-            view_mesh(house, cam, layers, config.mesh, tr)
+            view_mesh(house, cam, layers, config.mesh, tracer)
             t4 = time.perf_counter()
             for k, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 stages[k] += dt / len(cameras)
