@@ -14,7 +14,7 @@ from sceneforge.cli.main import cli
 
 from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import NYU40_IDS
-from sceneforge.errors import HouseError, SceneforgeError
+from sceneforge.errors import EXIT_FAILURES, HouseError, SceneforgeError
 from sceneforge.houses import House, LoadOptions, discover, iter_houses, load, make_instance
 from sceneforge.houses.inspect import summarize
 from sceneforge.houses.rooms import derive_rooms, points_in_triangles
@@ -82,7 +82,7 @@ def test_corrupt_house_json_is_reported_with_the_json_error(small_house, tmp_pat
     with pytest.raises(HouseError, match="not JSON: .*line 3 column 1"):
         load(tmp_path / "broken" / "house.json")
     res = run("houses", "inspect", tmp_path)
-    assert res.exit_code == 1
+    assert res.exit_code == EXIT_FAILURES  # some houses failed, the others were read
     failed = [line for line in res.output.splitlines() if line.startswith("failed:")]
     assert len(failed) == 1 and "house broken" in failed[0] and "line 3 column 1" in failed[0]
     assert "1 houses read, 1 failed" in res.output
@@ -99,7 +99,7 @@ def test_render_failure_log_names_the_unreadable_and_colliding_houses(small_hous
     out = tmp_path / "out.zarr"
     res = run("render", houses, out, "--resolution", "32x24", "--overhead-resolution", "16",
               "--views-per-house", "1", "--no-rgb")
-    assert res.exit_code == 1, res.output
+    assert res.exit_code == EXIT_FAILURES, res.output
     assert "Traceback" not in res.output
     store = open_store(str(out))
     assert sorted({str(store.view(i)["house_id"]) for i in range(len(store))}) == ["a", "b"]
