@@ -12,12 +12,9 @@ import uuid
 from pathlib import Path
 from typing import Iterator
 
-from sceneforge.errors import SceneforgeError
+from sceneforge.errors import SceneforgeError, plural
 
-
-def plural(n: int, word: str, many: str | None = None) -> str:
-    """``"1 house"``, ``"2 houses"`` (``many``: the plural when it is not ``word + "s"``)."""
-    return f"{n} {word if n == 1 else many or word + 's'}"
+__all__ = ["atomic_output", "check_output", "plural", "save_figure", "write_text"]
 
 
 def _is_url(path: str) -> bool:

@@ -134,7 +134,7 @@ def show(store, index, output, ply):
         check_output(path, what)
     s = open_store(store)
     if not -len(s) <= index < len(s):
-        raise click.BadParameter(f"the store has {len(s)} views", param_hint="--view")
+        raise click.BadParameter(f"the store has {plural(len(s), 'view')}", param_hint="--view")
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
     png = Path(output or f"{name}_view{index % len(s)}.png")
     check_output(png, "panel")

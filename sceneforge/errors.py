@@ -43,3 +43,9 @@ EXIT_USAGE = 2
 EXIT_FAILURES = 3
 #: interrupted by Ctrl-C (128 + SIGINT, as shells report it)
 EXIT_INTERRUPTED = 130
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """``"1 house"``, ``"2 houses"`` (``many``: the plural when it is not ``word + "s"``):
+    counts in messages, library and CLI alike."""
+    return f"{n} {word if n == 1 else many or word + 's'}"

@@ -34,7 +34,7 @@ from .conventions import (
     overhead_pixel_centre,
     tol,
 )
-from .errors import MissingDependencyError, SceneforgeError
+from .errors import MissingDependencyError, SceneforgeError, plural
 from .floors import floor_surfaces, level_at
 from .layers import Layers, instance_labels, layers_from_frontal
 
@@ -782,7 +782,7 @@ def explain_overhead_cameras(
     else:
         found = read_pbrs_cameras(cameras, sampler.width, sampler.height)
     if view_index is not None and not 0 <= view_index < len(found):
-        raise SceneforgeError(f"view {view_index}: {h.id} has {len(found)} views")
+        raise SceneforgeError(f"view {view_index}: {h.id} has {plural(len(found), 'view')}")
     views = []
     for i in range(len(found)) if view_index is None else [view_index]:
         layers = frontal_layers(h, found[i], tracer)
@@ -810,7 +810,7 @@ def explain_stored_view(store: str, index: int) -> ViewExplanation:
 
     s = open_store(store)
     if not -len(s) <= index < len(s):
-        raise SceneforgeError(f"view {index}: {store} has {len(s)} views")
+        raise SceneforgeError(f"view {index}: {store} has {plural(len(s), 'view')}")
     view, config = s.view(index), s.config
     if not view["valid"]:
         raise SceneforgeError(f"view {index} of {store} failed when it was rendered (see its failure log): "

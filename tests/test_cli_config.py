@@ -172,5 +172,5 @@ def test_overhead_explanation_is_one_library_call(small_house, tmp_path):
     assert view.index == 0 and explained.sampled is None and len(explained.cameras) == 1
     assert [c.name for c in view.overhead.candidates] == ["depth_statistics", "envelope_frustum", "majority_room"]
     assert view.overhead.resolution == 32 and len(view.points.objects) > 0
-    with pytest.raises(SceneforgeError, match="view 3: small has 1 views"):
+    with pytest.raises(SceneforgeError, match="view 3: small has 1 view$"):
         explain_overhead_cameras(tmp_path / "small", cameras, view_index=3)

@@ -85,7 +85,7 @@ def test_corrupt_house_json_is_reported_with_the_json_error(small_house, tmp_pat
     assert res.exit_code == EXIT_FAILURES  # some houses failed, the others were read
     failed = [line for line in res.output.splitlines() if line.startswith("failed:")]
     assert len(failed) == 1 and "house broken" in failed[0] and "line 3 column 1" in failed[0]
-    assert "1 houses read, 1 failed" in res.output
+    assert "1 house read, 1 failed" in res.output
 
 
 def test_render_failure_log_names_the_unreadable_and_colliding_houses(small_house, tmp_path):
