@@ -355,7 +355,7 @@ def test_missing_frozen_run_is_an_expected_error(store, tmp_path):
 def test_depth_net_overfits_four_views(store, tmp_path):
     # one house held out for validation leaves 4 views: every step sees all of them
     config = small_config("depth", store, batch_size=4, epochs=60, max_steps=None, lr=2e-3,
-                          split=SplitConfig(0.34, 0.0))
+                          split=SplitConfig(0.34, 0.0, file=str(tmp_path / "split.json")))
     result = train(config, tmp_path / "overfit", device="cpu", tensorboard=False)
     rows = [r for r in read_metrics(tmp_path / "overfit" / "metrics.csv") if r["split"] == "train"]
     assert json.loads((tmp_path / "overfit" / "split.json").read_text())["train"]["views"] == 4
@@ -376,7 +376,7 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
                        max_steps=1), run, device="cpu", tensorboard=False)
     out = tmp_path / "pred.zarr"
-    summary = predict(run, store, str(out), device="cpu", batch_size=4)
+    summary = predict(run, store, str(out), device="cpu", batch_size=4, split="all")
     assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
@@ -399,7 +399,7 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     camera = tmp_path / "camera"
     train(small_config("camera", store, depth_run=frontal_runs["depth"], max_steps=1), camera, device="cpu",
           tensorboard=False)
-    summary = predict(run, store, str(out), camera_run=camera, device="cpu", overwrite=True)
+    summary = predict(run, store, str(out), camera_run=camera, device="cpu", overwrite=True, split="all")
     assert summary.stages == ("depth", "seg", "overhead", "camera")
     p, t = open_store(str(out)).view(0), open_store(store).view(0)
     np.testing.assert_allclose(p["overhead_params"][[2, 3]], t["overhead_params"][[2, 3]])  # tz, theta known
@@ -453,6 +453,79 @@ def test_cli_train_and_predict(store, frontal_runs, tmp_path):
     assert again.exit_code == 1 and "already holds a run" in again.output and "Traceback" not in again.output
 
     out = str(tmp_path / "p.zarr")
-    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out, "--device", "cpu"])
+    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out, "--device", "cpu", "--split", "all"])
     assert result.exit_code == 0, result.output
     assert "6 of 6 views predicted (depth)" in " ".join(result.output.split())
+    # the runs above split with no test houses: the default split is empty, and says how to fix it
+    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out + "2", "--device", "cpu"])
+    assert result.exit_code == 1 and "no valid view of the 0 test houses" in result.output
+    assert "--split all" in result.output and "Traceback" not in result.output
+
+
+# ---------------------------------------------------------------------------- the split
+
+
+def test_the_split_is_drawn_once_and_names_its_fixes(tmp_path):
+    from sceneforge.learn.split import draw_split, fixed_split, read_split
+
+    ids = [f"h{i}" for i in range(3)]
+    with pytest.raises(SceneforgeError, match=r"3 houses cannot give a 0.1 validation split: use "
+                                              r"--val-fraction >= 0.34 \(or 0 for none\) or more houses"):
+        draw_split(ids, SplitConfig(0.1, 0.0))
+    with pytest.raises(SceneforgeError, match="3 houses cannot give a 0.2 test split: use --test-fraction >= 0.34"):
+        draw_split(ids, SplitConfig(0.0, 0.2))
+    path = tmp_path / "split.json"
+    first = fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path)))
+    assert [len(first.houses[s]) for s in ("train", "val", "test")] == [1, 1, 1]
+    assert read_split(path) == first and path.exists()
+    # a later stage reads the file, whatever it draws its weights with
+    assert fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path))) == first
+    with pytest.raises(SceneforgeError, match="--split-seed 5: pass the same, or --split-file NEW.json"):
+        fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=6, file=str(path)))
+    with pytest.raises(SceneforgeError, match="splits other stores: 1 houses \\(h9\\)"):
+        fixed_split([*ids, "h9"], ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path)))
+    with pytest.raises(SceneforgeError, match="no split file .*train a run on these stores first"):
+        read_split(tmp_path / "none.json")
+
+
+def test_stages_share_the_split_and_predict_and_evaluate_use_its_test_houses(store, tmp_path):
+    import click
+    from click.testing import CliRunner
+    from sceneforge.cli.main import LazyGroup
+
+    from sceneforge.learn.split import read_split
+    from sceneforge.store import open_store
+
+    split_file = tmp_path / "split.json"
+    split = SplitConfig(0.0, 0.34, seed=3, file=str(split_file))
+    a = train(small_config("depth", store, max_steps=1, split=split), tmp_path / "a", device="cpu",
+              tensorboard=False)
+    # another training seed, the same houses: the split is the data's
+    train(small_config("depth", store, max_steps=1, seed=9, split=split), tmp_path / "b", device="cpu",
+          tensorboard=False)
+    records = [json.loads((tmp_path / r / "split.json").read_text()) for r in ("a", "b")]
+    assert records[0]["test"] == records[1]["test"] and records[0]["test"]["views"] == 2
+    test_houses = read_split(split_file).of("test")
+    assert len(test_houses) == 1 and records[0]["test"]["houses"] == sorted(test_houses)
+
+    @click.group(cls=LazyGroup, lazy={"predict": "train:predict", "evaluate": "evaluate:evaluate"})
+    def cli():
+        pass
+
+    out = str(tmp_path / "p.zarr")
+    result = CliRunner().invoke(cli, ["predict", str(a.run), store, out, "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert "split: test (2 views of 1 houses)" in result.output
+    pred = open_store(out)
+    predicted = pred.attrs["prediction"]["views"]
+    assert len(predicted) == 2 and {str(pred.array("house_id")[i]) for i in predicted} == test_houses
+    assert pred.attrs["prediction"]["split_file"] == str(split_file.resolve())
+
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--density", "200",
+                                      "--plot", str(tmp_path / "p.png")])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert lines[0] == "split: test (2 views of 1 houses)"
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--split", "train", "--density", "200",
+                                      "--plot", str(tmp_path / "p.png")])
+    assert result.exit_code == 1 and "no predicted view of the train split" in result.output

@@ -24,6 +24,8 @@ EFT_LAYERS: tuple[str, ...] = typing.get_args(EFTLayers)
 #: how the EFT gates features along a ray
 Gating = Literal["volume", "surface"]
 GATINGS: tuple[str, ...] = typing.get_args(Gating)
+#: the views a prediction or an evaluation takes: the houses of one split, or every view
+SplitName = Literal["test", "val", "train", "all"]
 
 
 @dataclass(frozen=True)
@@ -59,14 +61,19 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class SplitConfig:
-    """How houses are divided into train, validation and test."""
+    """How houses are divided into train, validation and test: once per set of stores, saved
+    in a split file that every later stage, ``predict`` and ``evaluate`` read
+    (:mod:`sceneforge.learn.split`)."""
 
     #: fraction of the houses (rounded down) held out for validation
     val_fraction: float = 0.1
     #: fraction of the houses (rounded down) held out for testing
     test_fraction: float = 0.1
-    #: seed of the shuffle that assigns houses to splits
+    #: seed of the shuffle that assigns houses to splits (its own: not the training seed)
     seed: int = 0
+    #: the split file, written by the first run on the stores and read by every later one;
+    #: None = split.json beside the first store
+    file: str | None = None
 
     def __post_init__(self):
         v, t = self.val_fraction, self.test_fraction
@@ -182,8 +189,14 @@ class PredictConfig:
     #: a camera proposal run: place the overhead cameras from its predictions instead of
     #: the store's
     camera_run: str | None = None
+    #: the views to predict: those of the houses of this split ("all": every view)
+    split: SplitName = "test"
+    #: the split file; None = the one the run was trained with
+    split_file: str | None = None
 
     def __post_init__(self):
+        if self.split not in typing.get_args(SplitName):
+            raise ValueError(f"split must be one of {typing.get_args(SplitName)}, got {self.split!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
 

@@ -3,8 +3,9 @@
 - **Lazy reads**: a :class:`StoreDataset` keeps only view indices; each sample reads its
   own chunks of the arrays it needs. Stores are opened on first use in each process and
   never pickled, so any number of DataLoader workers can read at once.
-- **House-level split** (:func:`split_houses`): every view of a house falls in the same
-  split, so validation and test views show houses the networks never saw.
+- **House-level split** (:mod:`.split`): every view of a house falls in the same split,
+  fixed once per set of stores, so validation and test views show houses the networks
+  never saw.
 - **Input normalisation** *(ref)*: ``(rgb − mean) / 255`` with the mean colour of the PBRS
   images, :data:`RGB_MEAN`.
 - **Segmentation targets** (:func:`segmentation_target`): 40 classes per layer; class
@@ -17,14 +18,15 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Collection, Sequence
 
 import numpy as np
 import torch
 
 from ..conventions import NYU40_NAMES, is_envelope
 from ..errors import SceneforgeError
-from .config import SplitConfig  # defined without torch, for the CLI and the schema
+from .config import SplitConfig  # noqa: F401  (defined without torch, for the CLI and the schema)
+from .split import SPLITS, split_houses  # noqa: F401  (re-exported: the split needs no torch)
 
 #: mean RGB colour (0..255) subtracted from every input image *(ref: PBRS renderings)*
 RGB_MEAN = (178.1781, 158.5039, 142.5141)
@@ -70,21 +72,6 @@ def segmentation_target(category: np.ndarray) -> np.ndarray:
     return NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
 
 
-SPLITS = ("train", "val", "test")
-
-
-def split_houses(house_ids: Sequence[str], config: SplitConfig | None = None) -> dict[str, list[str]]:
-    """Assign houses to ``train``, ``val`` and ``test``: sorted ids shuffled with the seed,
-    then the first ⌊val·n⌋ to val, the next ⌊test·n⌋ to test, the rest to train. The same
-    houses and seed always give the same split."""
-    config = config or SplitConfig()
-    ids = sorted(set(map(str, house_ids)))
-    order = [ids[i] for i in np.random.default_rng(config.seed).permutation(len(ids))]
-    n_val, n_test = int(config.val_fraction * len(ids)), int(config.test_fraction * len(ids))
-    return {"val": sorted(order[:n_val]), "test": sorted(order[n_val:n_val + n_test]),
-            "train": sorted(order[n_val + n_test:])}
-
-
 @dataclass(frozen=True)
 class ViewIndex:
     """The usable views of a list of stores.
@@ -102,7 +89,10 @@ class ViewIndex:
     house: np.ndarray
     shapes: dict
 
-    def subset(self, houses: Sequence[str]) -> "ViewIndex":
+    def subset(self, houses: Collection[str] | None) -> "ViewIndex":
+        """The views of ``houses`` (None: every view)."""
+        if houses is None:
+            return self
         keep = np.isin(self.house, np.asarray(list(houses), dtype=self.house.dtype))
         return ViewIndex(self.stores, self.store[keep], self.view[keep], self.house[keep], self.shapes)
 

@@ -1,8 +1,8 @@
 """Predictions of trained runs, written in the store layout (SPEC §9, §10).
 
-``predict(run, store, out)`` runs a run's nets on every view of a store and writes a new
-store with the same per-view arrays, so the evaluation reads predictions exactly like
-ground truth:
+``predict(run, store, out)`` runs a run's nets on the views of a store's test houses (the
+run's split file; ``split="all"``: every view) and writes a new store with the same
+per-view arrays, so the evaluation reads predictions exactly like ground truth:
 
 - ``depth``: the depth net's D1..D5; with a segmentation net, D1/D2 (D3/D4) are NaN where
   it sees no object in layer 1 (3) — the paper's predicted masks;
@@ -15,8 +15,11 @@ ground truth:
   unless a camera proposal run gives it (``camera_run``: the frontal camera's gravity
   frame at the true overhead camera height, centred on the predicted ``(tx, ty)``, of
   half-diagonal ``sigma``, as the paper does at test time);
-- what no net predicts (``instance``, ``overhead_depth``) holds the fill values; there
-  is no ``rgb``, ``normal`` or mesh.
+- what no net predicts (``instance``, ``overhead_depth``) holds the fill values, and so
+  does every view outside the split; there is no ``rgb``, ``normal`` or mesh.
+
+The store's ``prediction`` attribute records the run, the split and the indices of the
+views predicted (``views``), which are the only ones ``sceneforge evaluate`` scores.
 
 Which nets run depends on the run: a depth or segmentation run predicts its frontal
 outputs; an overhead run predicts everything (its config names its frozen depth and
@@ -37,6 +40,7 @@ from ..errors import SceneforgeError
 from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers
+from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
 
@@ -60,6 +64,9 @@ class PredictSummary:
     predicted: int
     stages: tuple[str, ...]
     seconds: float
+    #: the split predicted, and the houses of it that the store holds
+    split: str = "all"
+    houses: int = 0
 
 
 def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tuple[int, int],
@@ -130,14 +137,16 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 
 
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
-            batch_size: int = 8, device: str = "auto", workers: int = 0, overwrite: bool = False,
-            progress=None) -> PredictSummary:
-    """Write the predictions of ``run`` for every view of ``store`` to a new store ``out``.
+            batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
+            device: str = "auto", workers: int = 0, overwrite: bool = False, progress=None) -> PredictSummary:
+    """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
 
     camera_run : a camera proposal run; the overhead cameras come from it instead of the store
+    split      : ``test``, ``val``, ``train`` (the houses of that split) or ``all`` (every view)
+    split_file : the split file (default: the one the run was trained with)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
     Raises :class:`SceneforgeError` for a camera run given as RUN, an existing ``out``
-    without ``overwrite``, or a store without RGB images.
+    without ``overwrite``, a store without RGB images, or a split without views in ``store``.
     """
     import time
 
@@ -151,6 +160,14 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     config, nets, stages = _load_nets(run, camera_run, dev)
 
     index = index_stores([store])
+    houses = None
+    if split != "all":
+        chosen = read_split(split_file or config.split.file or default_split_file(config.stores))
+        houses = chosen.of(split)
+        index = index.subset(houses)
+        if not len(index):
+            raise SceneforgeError(f"{store} has no valid view of the {len(houses)} {split} houses of "
+                                  f"{chosen.path}: predict another split (--split all: every view)")
     valid = index.view
     source = open_store(store)
     eft = None
@@ -178,10 +195,12 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
     prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
                   "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                  "min_height": MIN_HEIGHT}
+                  "min_height": MIN_HEIGHT, "split": split, "views": [int(i) for i in valid],
+                  "split_file": None if houses is None else str(chosen.path)}
     writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                     failures=source.attrs["failures"], prediction=prediction)
-    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)
+    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0, split,
+                          len(set(index.house)))
 
 
 def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device) -> tuple:

@@ -9,7 +9,8 @@ metrics, validation) are in :mod:`.trainer`.
 A run lives in one folder::
 
     RUN/config.json        the resolved TrainConfig (reload: TrainConfig.from_dict)
-    RUN/split.json         the houses (and view counts) of train / val / test
+    RUN/split.json         the houses (and view counts) of train / val / test, as read
+                           from the stores' split file (:mod:`.split`)
     RUN/checkpoint.pt      weights, optimiser and position; rewritten every
                            ``checkpoint_every`` steps and at the end of every epoch
     RUN/metrics.csv        step, epoch, split, loss (+ its parts), lr, images/s, seconds
@@ -34,8 +35,9 @@ from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
-from .dataset import SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
+from .dataset import StoreDataset, ViewIndex, index_stores
 from .eft import EpipolarFeatureTransformer
+from .split import SPLITS, default_split_file, fixed_split
 from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
 from .trainer import (
     CHECKPOINT,
@@ -100,8 +102,19 @@ def frontal_nets(config: TrainConfig, device: torch.device | str = "cpu") -> dic
         frozen_config, loaded = load_run(run, device)
         if frozen_config.stage != stage:
             raise SceneforgeError(f"{run} is a {frozen_config.stage} run, not a {stage} run")
+        _check_same_split(config, frozen_config, run)
         nets[stage] = loaded[stage].requires_grad_(False)
     return nets
+
+
+def _check_same_split(config: TrainConfig, frozen: TrainConfig, run) -> None:
+    """A stage on the stores of its frozen run must use that run's split file: another split
+    would validate and test it on the frozen nets' training houses."""
+    ours, theirs = config.split.file, frozen.split.file
+    shared = {str(Path(s).resolve()) for s in config.stores} & {str(Path(s).resolve()) for s in frozen.stores}
+    if ours and theirs and shared and Path(ours).resolve() != Path(theirs).resolve():
+        raise SceneforgeError(f"{run} was trained on the split of {theirs}, this run splits the same stores by "
+                              f"{ours}: pass --split-file {theirs}")
 
 
 # --------------------------------------------------------------------------- running
@@ -155,9 +168,12 @@ def plot_loss_curve(run: str | Path) -> Path:
 
 
 def _absolute_runs(config: TrainConfig) -> TrainConfig:
-    """The frozen runs as absolute paths: found again from any working directory."""
+    """The frozen runs and the split file as absolute paths: found again from any working
+    directory (the split file's default, beside the first store, written out)."""
+    split_file = Path(config.split.file) if config.split.file is not None else default_split_file(config.stores)
     return replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
-                   seg_run=config.seg_run and str(Path(config.seg_run).resolve()))
+                   seg_run=config.seg_run and str(Path(config.seg_run).resolve()),
+                   split=replace(config.split, file=str(split_file.resolve())))
 
 
 def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
@@ -180,15 +196,16 @@ def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
 
 
 def _split(config: TrainConfig) -> tuple[ViewIndex, dict[str, ViewIndex], dict]:
-    """The stores' views split by house, and the record of the split for ``split.json``."""
+    """The stores' views split by house (the split saved for the stores, drawn and saved on
+    first use), and the record of the split for ``RUN/split.json``."""
     index = index_stores(config.stores)
-    houses = split_houses(index.house, config.split)
-    subsets = {s: index.subset(houses[s]) for s in SPLITS}
+    split = fixed_split(index.house, config.stores, config.split)
+    subsets = {s: index.subset(split.of(s)) for s in SPLITS}
     if not len(subsets["train"]):
         raise SceneforgeError(f"no training views: the split leaves {len(index)} views of "
                               f"{len(set(index.house))} houses to validation and test")
-    record = {"stores": list(config.stores), "seed": config.split.seed,
-              **{s: {"houses": houses[s], "views": len(subsets[s])} for s in SPLITS}}
+    record = {"stores": list(config.stores), "seed": config.split.seed, "file": config.split.file,
+              **{s: {"houses": sorted(split.of(s) & set(index.house)), "views": len(subsets[s])} for s in SPLITS}}
     return index, subsets, record
 
 
