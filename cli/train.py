@@ -28,6 +28,8 @@ TRAIN_OPTIONS = (
     ConfigOption("--seed", "seed"),
     ConfigOption("--eft-layers", "eft_layers"),
     ConfigOption("--gating", "eft.gating"),
+    ConfigOption("--floor-as-zero", "floor_as_zero"),
+    ConfigOption("--seg-empty", "loss.seg_empty"),
     ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--split-seed", "split.seed"),
@@ -38,6 +40,7 @@ PREDICT_OPTIONS = (
     ConfigOption("--camera-run", "camera_run", type=click.Path(exists=True, file_okay=False)),
     ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
     ConfigOption("--split", "split"),
+    ConfigOption("--floor", "floor"),
     ConfigOption("--split-file", "split_file", type=click.Path(exists=True, dir_okay=False), convert=absolute_path),
 )
 
@@ -127,7 +130,8 @@ def predict(run, store, out, config, device, workers, overwrite):
     console = Console(highlight=False, stderr=True)
     with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,
-                                 split=config.split, split_file=config.split_file, device=device, workers=workers,
+                                 split=config.split, split_file=config.split_file, floor=config.floor,
+                                 device=device, workers=workers,
                                  overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"split: {summary.split} ({summary.predicted} views of {summary.houses} houses)")
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "

@@ -19,6 +19,7 @@ from sceneforge.errors import SceneforgeError  # noqa: E402
 from sceneforge.learn.config import FROZEN  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
+    EMPTY,
     CLASS_TO_NYU40,
     RGB_MEAN,
     SplitConfig,
@@ -116,14 +117,55 @@ def test_segmentation_targets_merge_the_envelope_into_background():
 def test_segmentation_and_height_losses():
     target = torch.tensor([[[[3, 0], [7, 39]], [[0, 0], [5, 5]]]])  # (1, 2, 2, 2)
     uniform = torch.zeros(1, 80, 2, 2)
-    assert segmentation_loss(uniform, target).item() == pytest.approx(2 * math.log(40))
+    assert segmentation_loss(uniform, target).item() == pytest.approx(math.log(40))  # the layers' mean
     sure = torch.full((1, 2, 40, 2, 2), -30.0)
     sure.scatter_(2, target.unsqueeze(2), 30.0)
     assert segmentation_loss(sure.reshape(1, 80, 2, 2), target).item() < 1e-6
+    # empty pixels (the ray hits nothing) are ignored: wrong scores there change nothing,
+    # unless they are counted as background
+    empty = target.clone()
+    empty[0, 0, 0, 0] = EMPTY
+    wrong = sure.clone()
+    wrong[0, 0, :, 0, 0] = 0.0
+    wrong[0, 0, 5, 0, 0] = 30.0
+    assert segmentation_loss(wrong.reshape(1, 80, 2, 2), empty).item() < 1e-6
+    as_background = segmentation_loss(wrong.reshape(1, 80, 2, 2), empty, LossConfig(seg_empty="background"))
+    assert as_background.item() == pytest.approx(30 / 4 / 2, rel=1e-4)  # 30 on one pixel of 4, one layer of 2
 
     height = torch.tensor([[[1.0, torch.nan], [0.5, torch.nan]]])
     pred = torch.tensor([[[[1.5, 99.0], [0.0, -99.0]]]])
     assert height_loss(pred, height).item() == pytest.approx(0.5)
+    assert height_loss(pred, height, torch.tensor([[[True, True], [False, False]]])).item() == pytest.approx(0.5)
+
+
+def test_changing_the_floors_height_target_leaves_the_height_loss_unchanged(store):
+    from sceneforge.learn.stages import overhead_height_loss
+
+    batch = next(iter(torch.utils.data.DataLoader(StoreDataset(index_stores([store]), ("overhead_height",)),
+                                                  batch_size=3)))
+    floor = ~batch["overhead_foreground"] & torch.isfinite(batch["overhead_height"])
+    assert floor.any() and batch["overhead_foreground"].any()
+    np.testing.assert_array_equal(batch["overhead_height"][floor].numpy(), 0.0)
+    raised = {**batch, "overhead_height": torch.where(floor, torch.tensor(2.5), batch["overhead_height"])}
+    pred = torch.rand(3, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+    paper = small_config("overhead", store)
+    assert not paper.floor_as_zero
+    assert overhead_height_loss(paper, pred, raised).item() == overhead_height_loss(paper, pred, batch).item()
+    alternative = small_config("overhead", store, floor_as_zero=True)
+    assert overhead_height_loss(alternative, pred, raised).item() > overhead_height_loss(alternative, pred, batch).item()
+
+
+def test_the_floor_leaves_predicted_heights_by_the_overhead_segmentation():
+    from sceneforge.learn.predict import overhead_heights
+
+    height = torch.tensor([[[0.02, 0.3, 0.8]]])
+    logits = torch.zeros(1, 40, 1, 3)
+    logits[0, BACKGROUND, 0, 1] = 1.0  # background at the 30 cm pixel
+    logits[0, 7, 0, [0, 2]] = 1.0
+    paper = overhead_heights(height, logits)
+    assert torch.isnan(paper[0, 0, :2]).all() and paper[0, 0, 2] == pytest.approx(0.8)
+    by_height = overhead_heights(height, logits, floor="height")
+    assert torch.isnan(by_height[0, 0, 0]) and by_height[0, 0, 1:].tolist() == pytest.approx([0.3, 0.8])
 
 
 def test_masked_layers_empty_the_background():
@@ -198,8 +240,10 @@ def test_dataset_reads_lazily_and_works_with_workers(store):
     np.testing.assert_array_equal(s["overhead_height"].numpy()[floor_only], 0.0)
     nothing = np.isnan(raw["overhead_height"]) & ~floor_only
     assert np.isnan(s["overhead_height"].numpy()[nothing]).all()
-    bare = StoreDataset(index, ("overhead_height",), floor_as_zero=False)[0]["overhead_height"].numpy()
-    np.testing.assert_array_equal(np.isnan(bare), np.isnan(raw["overhead_height"]))
+    np.testing.assert_array_equal(s["overhead_foreground"].numpy(), np.isfinite(raw["overhead_height"]))
+    void = np.isnan(raw["overhead_depth"]).all(axis=0)
+    np.testing.assert_array_equal(s["overhead_seg"].numpy() == EMPTY, void)
+    np.testing.assert_array_equal(s["seg"].numpy() == EMPTY, np.isnan(raw["depth"][[0, 2]]) & np.isnan(raw["depth"][4]))
 
     pickle.loads(pickle.dumps(ds))  # no zarr handle travels to workers
     serial = list(torch.utils.data.DataLoader(ds, batch_size=4))

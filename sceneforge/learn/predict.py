@@ -8,8 +8,10 @@ per-view arrays, so the evaluation reads predictions exactly like ground truth:
   it sees no object in layer 1 (3) — the paper's predicted masks;
 - ``category``: the segmentation net's NYU40 classes of layers 1 and 3 where the layer is
   set (0 elsewhere and for D5, which no net labels);
-- ``overhead_height``: the overhead height net's heights, NaN at or below
-  ``min_height`` above the floor (the floor; the paper keeps only pixels > 5 cm);
+- ``overhead_height``: the overhead height net's heights, NaN where the overhead
+  segmentation net sees background (the floor: the paper's test-time rule; ``floor=
+  "height"``: not) and at or below ``min_height`` above the floor (the paper evaluates
+  only pixels > 5 cm);
 - ``overhead_category``: the overhead segmentation net's classes;
 - cameras, ids and ``valid`` are copied from the source store, the overhead camera too
   unless a camera proposal run gives it (``camera_run``: the frontal camera's gravity
@@ -37,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneforgeError
-from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
+from .dataset import BACKGROUND, CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers
 from .split import default_split_file, read_split
@@ -96,7 +98,18 @@ def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tup
     return np.array(poses), np.array(extents), np.array(out)
 
 
-def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool) -> dict:
+def overhead_heights(height: torch.Tensor, seg_logits: torch.Tensor, floor: str = "segmentation") -> torch.Tensor:
+    """Predicted heights (B, R, R) with the floor removed (NaN): where the overhead
+    segmentation logits (B, 40, R, R) say background (``floor="segmentation"``), and at or
+    below :data:`MIN_HEIGHT` in any case."""
+    keep = height > MIN_HEIGHT
+    if floor == "segmentation":
+        keep &= seg_logits.argmax(dim=1) != BACKGROUND
+    return torch.where(keep, height, torch.nan)
+
+
+def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool,
+                   floor: str = "segmentation") -> dict:
     """Every output of a batch as numpy arrays, keyed by store array name."""
     rgb = batch["rgb"]
     out: dict[str, np.ndarray] = {}
@@ -112,10 +125,9 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
         out.update(overhead_cam_to_world=pose, overhead_extent=extent, overhead_params=params)
     if eft is not None:
         x, layers, logits = overhead_input(nets, eft, batch)
-        height = nets["height"](x)[:, 0]
-        out["overhead_height"] = torch.where(height > MIN_HEIGHT, height, torch.nan).cpu().numpy()
-        top = nets["overhead_seg"](x).argmax(dim=1).cpu().numpy()
-        out["overhead_category"] = CLASS_TO_NYU40[top].astype(np.uint8)
+        top = nets["overhead_seg"](x)
+        out["overhead_height"] = overhead_heights(nets["height"](x)[:, 0], top, floor).cpu().numpy()
+        out["overhead_category"] = CLASS_TO_NYU40[top.argmax(dim=1).cpu().numpy()].astype(np.uint8)
     else:
         logits = nets["seg"](rgb).prediction if "seg" in nets else None
         layers = None
@@ -138,12 +150,14 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
             batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
+            floor: str = "segmentation",
             device: str = "auto", workers: int = 0, overwrite: bool = False, progress=None) -> PredictSummary:
     """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
 
     camera_run : a camera proposal run; the overhead cameras come from it instead of the store
     split      : ``test``, ``val``, ``train`` (the houses of that split) or ``all`` (every view)
     split_file : the split file (default: the one the run was trained with)
+    floor      : how the floor leaves the overhead heights (:func:`overhead_heights`)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
     Raises :class:`SceneforgeError` for a camera run given as RUN, an existing ``out``
     without ``overwrite``, a store without RGB images, or a split without views in ``store``.
@@ -185,7 +199,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     with torch.no_grad():
         for batch in loader:
             batch = {k: v.to(dev) for k, v in batch.items()}
-            outputs = _predict_batch(nets, eft, batch, camera_run is not None)
+            outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor)
             for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
                 shards.add(int(i), {name: value[row] for name, value in outputs.items()})
             shards.flush()
@@ -195,7 +209,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
     prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
                   "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                  "min_height": MIN_HEIGHT, "split": split, "views": [int(i) for i in valid],
+                  "min_height": MIN_HEIGHT, "floor": floor, "split": split, "views": [int(i) for i in valid],
                   "split_file": None if houses is None else str(chosen.path)}
     writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                     failures=source.attrs["failures"], prediction=prediction)

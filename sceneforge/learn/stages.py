@@ -101,7 +101,7 @@ class SegStage(Stage):
         return {"seg": FrontalSegNet(_widths(config, SEG_NET))}
 
     def loss(self, config, nets, frontal, eft, batch):
-        return segmentation_loss(nets["seg"](batch["rgb"]).prediction, batch["seg"]), {}
+        return segmentation_loss(nets["seg"](batch["rgb"]).prediction, batch["seg"], config.loss), {}
 
 
 class OverheadStage(Stage):
@@ -122,9 +122,16 @@ class OverheadStage(Stage):
 
     def loss(self, config, nets, frontal, eft, batch):
         x, _, _ = overhead_input(frontal, eft, batch, config.eft_layers == "truth")
-        h = height_loss(nets["height"](x), batch["overhead_height"])
-        s = segmentation_loss(nets["overhead_seg"](x), batch["overhead_seg"])
+        h = overhead_height_loss(config, nets["height"](x), batch)
+        s = segmentation_loss(nets["overhead_seg"](x), batch["overhead_seg"], config.loss)
         return h + config.loss.overhead_seg_weight * s, {"height_l1": h.item(), "seg_ce": s.item()}
+
+
+def overhead_height_loss(config: TrainConfig, pred: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    """The height loss of predicted heights (B, 1, R, R) on a batch's targets: the object
+    pixels only *(paper)*, or every pixel with a height (the floor as 0) with ``floor_as_zero``."""
+    supervised = None if config.floor_as_zero else batch["overhead_foreground"]
+    return height_loss(pred, batch["overhead_height"], supervised)
 
 
 class CameraStage(Stage):

@@ -218,8 +218,8 @@ def _write_run_files(run: Path, config: TrainConfig, split_record: dict) -> None
 def _datasets(stage: Stage, config: TrainConfig, subsets: dict[str, ViewIndex]
               ) -> tuple[StoreDataset, StoreDataset | None]:
     """The training views and the validation views (None when there are none) as samples."""
-    train_set = StoreDataset(subsets["train"], stage.fields, config.floor_as_zero)
-    val_set = StoreDataset(subsets["val"], stage.fields, config.floor_as_zero) if len(subsets["val"]) else None
+    train_set = StoreDataset(subsets["train"], stage.fields)
+    val_set = StoreDataset(subsets["val"], stage.fields) if len(subsets["val"]) else None
     return train_set, val_set
 
 
