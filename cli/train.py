@@ -40,7 +40,7 @@ PREDICT_OPTIONS = (
     ConfigOption("--camera-run", "camera_run", type=click.Path(exists=True, file_okay=False)),
     ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
     ConfigOption("--split", "split"),
-    ConfigOption("--floor", "floor"),
+    ConfigOption("--floor-removal", "floor_removal"),
     ConfigOption("--split-file", "split_file", type=click.Path(exists=True, dir_okay=False), convert=absolute_path),
 )
 
@@ -130,7 +130,7 @@ def predict(run, store, out, config, device, workers, overwrite):
     console = Console(highlight=False, stderr=True)
     with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,
-                                 split=config.split, split_file=config.split_file, floor=config.floor,
+                                 split=config.split, split_file=config.split_file, floor=config.floor_removal,
                                  device=device, workers=workers,
                                  overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"split: {summary.split} ({summary.predicted} views of {summary.houses} houses)")

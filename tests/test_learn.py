@@ -19,8 +19,8 @@ from sceneforge.errors import SceneforgeError  # noqa: E402
 from sceneforge.learn.config import FROZEN  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
-    EMPTY,
     CLASS_TO_NYU40,
+    EMPTY,
     RGB_MEAN,
     SplitConfig,
     StoreDataset,

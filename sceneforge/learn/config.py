@@ -208,11 +208,12 @@ class PredictConfig:
     #: how the floor is removed from the overhead heights: "segmentation" (where the overhead
     #: segmentation net sees background, the paper's) or "height" (only by the threshold);
     #: heights at or below 5 cm are removed either way (the paper evaluates only above)
-    floor: FloorRemoval = "segmentation"
+    floor_removal: FloorRemoval = "segmentation"
 
     def __post_init__(self):
-        if self.floor not in typing.get_args(FloorRemoval):
-            raise ValueError(f"floor must be one of {typing.get_args(FloorRemoval)}, got {self.floor!r}")
+        if self.floor_removal not in typing.get_args(FloorRemoval):
+            raise ValueError(f"floor_removal must be one of {typing.get_args(FloorRemoval)}, "
+                             f"got {self.floor_removal!r}")
         if self.split not in typing.get_args(SplitName):
             raise ValueError(f"split must be one of {typing.get_args(SplitName)}, got {self.split!r}")
         if self.batch_size < 1:
