@@ -77,7 +77,8 @@ def _train_bar(console):
 @click.option("--resume", is_flag=True, help="Continue the run saved in the run folder.")
 @click.option("--tensorboard/--no-tensorboard", default=True, show_default=True,
               help="Also log to RUN/tensorboard when TensorBoard is installed.")
-def train(config, run_dir, device, workers, resume, tensorboard):
+@click.option("--wandb", is_flag=True, help="Also log to Weights & Biases (needs the wandb package).")
+def train(config, run_dir, device, workers, resume, tensorboard, wandb):
     """Train one STAGE of the paper's networks on the zarr STORES (split by house).
 
     Train `depth` and `seg` first, then `overhead` and `camera`, which read the frozen
@@ -98,7 +99,7 @@ def train(config, run_dir, device, workers, resume, tensorboard):
     console = Console(highlight=False, stderr=True)
     with _train_bar(console) as bar:
         result = run_training(config, run, device=device, workers=workers, resume=resume,
-                              tensorboard=tensorboard, progress=_TrainBar(bar))
+                              tensorboard=tensorboard, wandb=wandb, progress=_TrainBar(bar))
     console.print(f"{result.run}: {result.steps} steps, {result.epochs} epochs in {result.seconds:.1f} s "
                   f"({result.images_per_s:.1f} images/s); train loss {result.train_loss:.4g}, "
                   f"val loss {result.val_loss:.4g}")

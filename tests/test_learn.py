@@ -168,6 +168,29 @@ def test_the_floor_leaves_predicted_heights_by_the_overhead_segmentation():
     assert torch.isnan(by_height[0, 0, 0]) and by_height[0, 0, 1:].tolist() == pytest.approx([0.3, 0.8])
 
 
+def test_validation_metrics_against_hand_computed_values():
+    from sceneforge.learn.metrics import Metrics, depth_errors, height_error, segmentation_iou
+
+    m = Metrics()
+    target = torch.full((1, 5, 1, 2), torch.nan)
+    target[0, 0] = torch.tensor([[2.0, 4.0]])
+    pred = torch.zeros(1, 5, 1, 2)
+    pred[0, 0] = torch.tensor([[3.0, 4.0]])
+    depth_errors(pred, target, m)
+    depth_errors(pred, target, m)  # a second batch: pooled, not averaged per batch
+    r = m.result()
+    assert r["d1_absrel"] == pytest.approx(0.25) and r["d1_rmse"] == pytest.approx(math.sqrt(0.5))
+    assert math.isnan(r["d2_absrel"])  # no finite target
+    m = Metrics()
+    logits = torch.zeros(1, 40, 1, 4)
+    logits[0, [1, 1, 2, 2], 0, [0, 1, 2, 3]] = 1  # predicted classes 1 1 2 2
+    segmentation_iou(logits, torch.tensor([[[1, 2, 2, EMPTY]]]), m, "miou")
+    assert m.result()["miou"] == pytest.approx((1 / 2 + 1 / 2) / 2)  # class 1: 1/2, class 2: 1/2
+    m = Metrics()
+    height_error(torch.tensor([[[[0.5, 0.0, 9.0]]]]), torch.tensor([[[0.3, 0.04, torch.nan]]]), m)
+    assert m.result()["height_l1_above_5cm"] == pytest.approx(0.2)
+
+
 def test_masked_layers_empty_the_background():
     depth = torch.arange(5.0).view(1, 5, 1, 1).expand(1, 5, 1, 3).clone()
     logits = torch.zeros(1, 2, 40, 1, 3)
@@ -328,15 +351,20 @@ def test_a_diverged_loss_is_an_expected_error():
 def test_the_epoch_loop_logs_validates_and_checkpoints_on_schedule(tmp_path):
     # 8 views in batches of 3: 3 steps an epoch, the last one of 2 views
     trainer = _depth_trainer(batch_size=3, epochs=2, log_every=2, checkpoint_every=100)
-    log = MetricsLog(tmp_path, (), None, tensorboard=False)
-    checkpoint = Checkpoint(tmp_path / "checkpoint.pt")
-    loop = EpochLoop(trainer, _Views(8), _Views(3), 6, log, checkpoint)
+    log = MetricsLog(tmp_path, (), None, tensorboard=False, metrics=get_stage("depth").val_metrics)
+    checkpoint, best = Checkpoint(tmp_path / "checkpoint.pt"), Checkpoint(tmp_path / "best.pt")
+    loop = EpochLoop(trainer, _Views(8), _Views(3), 6, log, checkpoint, best=best)
     end = loop.run(Position())
     assert end == Position(6, 2, 0) and checkpoint.load()["step"] == 6
     rows = read_metrics(tmp_path / "metrics.csv")
     assert [(int(r["step"]), int(r["epoch"]), r["split"]) for r in rows] == [
         (2, 0, "train"), (3, 0, "val"), (4, 1, "train"), (6, 1, "train"), (6, 1, "val")]
     assert loop.train_loss == float(rows[3]["loss"]) and loop.val_loss == float(rows[4]["loss"])
+    val = [r for r in rows if r["split"] == "val"]
+    assert all(float(r[f"d{k}_{m}"]) > 0 for r in val for k in range(1, 6) for m in ("absrel", "rmse"))
+    assert all(r["d1_rmse"] == "" for r in rows if r["split"] == "train")
+    lowest = min(val, key=lambda r: float(r["loss"]))
+    assert best.load()["step"] == int(lowest["step"])  # the best epoch's weights, beside the latest
     assert all(net.training for net in trainer.nets.values())  # validation hands them back in training mode
 
     stopped = EpochLoop(_depth_trainer(batch_size=3, epochs=2, log_every=2), _Views(8), _Views(3), 2, log,
@@ -359,6 +387,7 @@ def test_every_stage_trains_two_steps_on_cpu(stage, store, frontal_runs, tmp_pat
     assert result.steps == 2 and math.isfinite(result.train_loss)
     rows = read_metrics(run / "metrics.csv")
     assert [int(r["step"]) for r in rows] == [1, 2] and all(float(r["loss"]) > 0 for r in rows)
+    assert set(get_stage(stage).val_metrics) <= set(rows[0])  # the validation metrics' columns
     saved = read_config(run)
     assert saved == TrainConfig.from_dict(json.loads((run / "config.json").read_text()))
     # the EFT's resolution is the stores' (32 here), not a saved setting: a mismatch with the

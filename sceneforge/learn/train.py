@@ -13,9 +13,12 @@ A run lives in one folder::
                            from the stores' split file (:mod:`.split`)
     RUN/checkpoint.pt      weights, optimiser and position; rewritten every
                            ``checkpoint_every`` steps and at the end of every epoch
-    RUN/metrics.csv        step, epoch, split, loss (+ its parts), lr, images/s, seconds
+    RUN/best.pt            the same, at the end of the epoch of the lowest validation loss
+    RUN/metrics.csv        step, epoch, split, loss (+ its parts; + the validation metrics
+                           of :mod:`.metrics` on val rows), lr, images/s, seconds
     RUN/loss_curve.png     train and validation loss against steps, drawn at the end
     RUN/tensorboard/       the same scalars, when TensorBoard is installed
+    RUN/wandb/             the same, with ``wandb=True`` (Weights & Biases, if installed)
 
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
 checkpoint with the same data order (a seeded permutation per epoch).
@@ -40,6 +43,7 @@ from .eft import EpipolarFeatureTransformer
 from .split import SPLITS, default_split_file, fixed_split
 from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
 from .trainer import (
+    BEST,
     CHECKPOINT,
     Checkpoint,
     EpochLoop,
@@ -237,6 +241,7 @@ def train(
     workers: int = 0,
     resume: bool = False,
     tensorboard: bool = True,
+    wandb: bool = False,
     progress: TrainProgress | None = None,
 ) -> TrainResult:
     """Train ``config.stage`` into the folder ``run`` (layout: module docstring).
@@ -244,6 +249,8 @@ def train(
     device  : ``auto`` (the GPU when present), ``cpu``, ``cuda``, ``cuda:1``, ...
     workers : DataLoader worker processes (0: read in this process)
     resume  : continue the run saved in ``run`` (same config; ``epochs``/``max_steps`` may grow)
+    wandb   : also log to Weights & Biases (project ``sceneforge``, the run folder's name);
+              needs the ``wandb`` package
     Raises :class:`SceneforgeError` for unusable stores, a missing frozen run, or a run
     folder that already holds a run (without ``resume``).
     """
@@ -265,10 +272,11 @@ def train(
     start = checkpoint.restore(trainer) if resume else Position()
     train_set, val_set = _datasets(stage, config, subsets)
     total = _total_steps(config, len(train_set))
-    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard)
+    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
+                     {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
     if progress:
         progress.start(total, start.step)
-    loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress)
+    loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress, Checkpoint(run / BEST))
     end = loop.run(start)
     log.close()
     plot_loss_curve(run)
