@@ -83,6 +83,7 @@ class Stage(ABC):
     def measure(self, config: TrainConfig, outputs: dict[str, Tensor], batch: dict[str, Tensor],
                 metrics: Metrics) -> None:
         """Add a batch's :attr:`val_metrics` to ``metrics`` (default: none)."""
+        return None
 
     def loss(self, config: TrainConfig, nets: Nets, frontal: Nets, eft: EpipolarFeatureTransformer | None,
              batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
