@@ -25,6 +25,7 @@ COMMANDS = {
     "export": "render:export",
     "train": "train:train",
     "predict": "train:predict",
+    "reconstruct": "reconstruct:reconstruct",
 }
 
 

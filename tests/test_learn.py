@@ -602,3 +602,71 @@ def test_stages_share_the_split_and_predict_and_evaluate_use_its_test_houses(sto
     result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--split", "train", "--density", "200",
                                       "--plot", str(tmp_path / "p.png")])
     assert result.exit_code == 1 and "no predicted view of the train split" in result.output
+
+
+# --------------------------------------------------------------------------- reconstruct
+
+
+def test_reconstruct_a_rendered_photo_gives_a_mesh_inside_the_cameras_frustum(store, frontal_runs, tmp_path):
+    import trimesh
+    from click.testing import CliRunner
+    from PIL import Image
+    from sceneforge.cli.main import LazyGroup
+
+    from sceneforge.store import open_store
+
+    run = tmp_path / "overhead"
+    train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
+                       max_steps=1), run, device="cpu", tensorboard=False)
+    view = open_store(store).view(0)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    Image.fromarray(view["rgb"]).save(photos / "room.png")
+    K = view["K"]
+    cli = LazyGroup(name="sceneforge", lazy={"reconstruct": "reconstruct:reconstruct"})
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["reconstruct", str(run), str(photos), "--out", str(out), "--device", "cpu",
+                                      "--K", *map(str, (K[0, 0], K[1, 1], K[0, 2], K[1, 2])),
+                                      "--resolution", "32", "--floor-removal", "height"])
+    assert result.exit_code == 0, result.output
+    assert "1 photos reconstructed" in " ".join(result.output.split())
+    arrays = np.load(out / "room.npz")
+    assert arrays["depth"].shape == (5, 48, 64) and arrays["overhead_height"].shape == (32, 32)
+    np.testing.assert_allclose(arrays["K"], K)
+    assert (out / "room.png").stat().st_size > 5000
+    mesh = trimesh.load(out / "room.ply", process=False)
+    assert len(mesh.faces) > 100
+    pose = arrays["cam_to_world"]
+    cam = (np.asarray(mesh.vertices) - pose[:3, 3]) @ pose[:3, :3]
+    uv = cam @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    eps = 1e-6
+    assert (cam[:, 2] > 0).all()
+    assert ((u >= -eps) & (u <= 64 + eps) & (v >= -eps) & (v <= 48 + eps)).all()
+    # the camera sits 1.5 m above the floor of a gravity-aligned frame: nothing is far below it
+    assert np.asarray(mesh.vertices)[:, 1].min() > -1.5 - 0.5
+
+    bad = CliRunner().invoke(cli, ["reconstruct", frontal_runs["depth"], str(photos), "--out", str(out)])
+    assert bad.exit_code == 1 and "reconstruct needs an overhead run" in bad.output
+
+
+def test_reconstructed_overhead_heights_are_kept_inside_the_frustum():
+    from sceneforge.learn.reconstruct import PhotoCamera, _one, _overhead_camera
+
+    camera = PhotoCamera()
+    K, pose = camera.intrinsics(32, 24), camera.pose()
+    depth = np.full((5, 24, 32), np.nan, np.float32)
+    depth[4] = 4.0  # a wall 4 m ahead
+    top = _overhead_camera(depth, K, pose, camera, 16)
+    assert top.params[2] == pytest.approx(camera.height + top.cam_to_world[1, 3])  # tz: above the floor at -1.5
+    rec = _one("wall", np.zeros((24, 32, 3), np.uint8), depth, np.zeros((2, 24, 32), np.uint8),
+               np.ones((16, 16), np.float32), np.zeros((16, 16), np.uint8), K, pose, top.cam_to_world,
+               top.half_extent, top.params)
+    kept = np.isfinite(rec.arrays["overhead_height"])
+    assert 0 < kept.sum() < kept.size  # the overhead square reaches outside the frustum
+    cam = (rec.vertices - pose[:3, 3]) @ pose[:3, :3]
+    uv = cam @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    assert (cam[:, 2] > 0).all() and ((u >= -1e-6) & (u <= 32 + 1e-6) & (v >= -1e-6) & (v <= 24 + 1e-6)).all()
+    heights = rec.vertices[:, 1] + camera.height
+    assert np.isclose(heights, 1.0, atol=1e-6).sum() >= kept.sum()  # the 1 m heights are in the mesh
