@@ -9,7 +9,7 @@ import click
 from sceneforge.evaluate.config import EvaluateConfig
 
 from .options import ConfigOption, config_options
-from .output import check_output, save_figure, write_text
+from .output import check_output, plural, save_figure, write_text
 
 #: the options of the surface precision/recall commands and the config fields they set
 SURFACE_OPTIONS = (
@@ -94,6 +94,17 @@ def coverage(store, config, limit, json_path, plot):
     _write(report, report.coverage_text(), plot, json_path, f"coverage of ground-truth layers: {store}")
 
 
+def _split_houses(split: str, split_file: str | None, pred, gt: str):
+    """The houses of ``split`` (None for ``all``) from the split file given, else the one
+    the prediction recorded, else the one beside GT."""
+    if split == "all":
+        return None
+    from sceneforge.learn.split import default_split_file, read_split
+
+    recorded = pred.attrs.get("prediction", {}).get("split_file")
+    return read_split(split_file or recorded or default_split_file([gt])).of(split)
+
+
 @evaluate.command()
 @click.argument("pred")
 @click.argument("gt")
@@ -102,18 +113,36 @@ def coverage(store, config, limit, json_path, plot):
 @_json
 @click.option("--plot", type=click.Path(dir_okay=False), default="predictions.png", show_default=True,
               help="PNG of the precision and recall curves.")
-def predictions(pred, gt, config, limit, json_path, plot):
+@click.option("--split", type=click.Choice(["test", "val", "train", "all"]), default="test", show_default=True,
+              help="Score the views of this split's houses only (all: every predicted view).")
+@click.option("--split-file", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="The split file. [default: the one PRED was predicted with, else split.json beside GT]")
+def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     """Precision and recall of predicted layers (PRED, written by `sceneforge predict` in
     the store layout) against the ground-truth meshes of GT (the paper's table in §5): D1,
     D1 & overhead, D1-4 and D1-4 & overhead against objects, beside the paper's SUNCG
-    numbers. Cameras and overhead cameras are PRED's; view i of PRED must be view i of GT."""
-    from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
-    from sceneforge.evaluate.stores import views_to_score
+    numbers, on the test houses by default. Cameras and overhead cameras are PRED's; view
+    i of PRED must be view i of GT."""
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, matching_view, prediction_views
+    from sceneforge.evaluate.stores import empty_views, views_to_score
     from sceneforge.store import open_store
 
     _check(plot, json_path)
-    p = open_store(pred)
-    views = _scored(prediction_views(p, open_store(gt), limit), len(views_to_score(p, limit)))
+    pred_store, gt_store = open_store(pred), open_store(gt)
+    indices = views_to_score(pred_store, limit, _split_houses(split, split_file, pred_store, gt))
+    if not indices:
+        raise SceneforgeError(f"{pred} holds no predicted view of the {split} split: predict it "
+                              f"(sceneforge predict --split {split}) or choose another --split")
+    matching_view(pred_store, gt_store, indices[0])  # a mismatch is one red line, before anything is printed
+    houses = {str(pred_store.array("house_id")[i]) for i in indices}
+    click.echo(f"split: {split} ({plural(len(indices), 'view')} of {plural(len(houses), 'house')})")
+    empty = empty_views(pred_store, indices)
+    if empty:
+        click.secho(f"{len(empty)} of {len(indices)} predictions are empty (no finite D1-D4 nor overhead height): "
+                    f"scored precision 1 and recall 0 by convention (views {', '.join(map(str, empty[:8]))}"
+                    f"{', ...' if len(empty) > 8 else ''})", fg="yellow")
+    views = _scored(prediction_views(pred_store, gt_store, indices=indices), len(indices))
     report = evaluate_views(views, PREDICTION_VARIANTS, config.seed, config.surface, config.meshing)
     _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}")
 

@@ -33,6 +33,7 @@ COMMANDS = {
     "export": "render:export",
     "train": "train:train",
     "predict": "train:predict",
+    "reconstruct": "reconstruct:reconstruct",
 }
 
 

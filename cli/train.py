@@ -8,7 +8,7 @@ import click
 
 from sceneforge.learn.config import PredictConfig, TrainConfig
 
-from .options import ConfigOption, check_device, config_options
+from .options import ConfigOption, absolute_path, check_device, config_options
 from .output import check_output, plural
 from .progress import RichProgress, progress_bar
 
@@ -26,17 +26,23 @@ TRAIN_OPTIONS = (
     ConfigOption("--lr", "lr", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--width", "width", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--bn-momentum", "bn_momentum", type=click.FloatRange(0, 1, min_open=True)),
-    # one seed for the weights, the data order and the split, as before the split had its own
-    ConfigOption("--seed", ("seed", "split.seed")),
+    ConfigOption("--seed", "seed"),
     ConfigOption("--eft-layers", "eft_layers"),
     ConfigOption("--gating", "eft.gating"),
+    ConfigOption("--floor-as-zero", "floor_as_zero"),
+    ConfigOption("--seg-empty", "loss.seg_empty"),
     ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),
+    ConfigOption("--split-seed", "split.seed"),
+    ConfigOption("--split-file", "split.file", type=click.Path(dir_okay=False), convert=absolute_path),
 )
 #: the options of ``predict`` and the config fields they set
 PREDICT_OPTIONS = (
     ConfigOption("--camera-run", "camera_run", type=click.Path(exists=True, file_okay=False)),
     ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
+    ConfigOption("--split", "split"),
+    ConfigOption("--floor-removal", "floor_removal"),
+    ConfigOption("--split-file", "split_file", type=click.Path(exists=True, dir_okay=False), convert=absolute_path),
 )
 
 
@@ -72,11 +78,15 @@ def _train_bar(console):
 @click.option("--resume", is_flag=True, help="Continue the run saved in the run folder.")
 @click.option("--tensorboard/--no-tensorboard", default=True, show_default=True,
               help="Also log to RUN/tensorboard when TensorBoard is installed.")
-def train(config, run_dir, device, workers, resume, tensorboard):
+@click.option("--wandb", is_flag=True, help="Also log to Weights & Biases (needs the wandb package).")
+def train(config, run_dir, device, workers, resume, tensorboard, wandb):
     """Train one STAGE of the paper's networks on the zarr STORES (split by house).
 
     Train `depth` and `seg` first, then `overhead` and `camera`, which read the frozen
-    frontal runs (default: runs/depth and runs/seg). Adam, with the paper's learning rate
+    frontal runs (default: runs/depth and runs/seg). The first run on a set of stores
+    splits their houses into train, validation and test (with --split-seed, not --seed)
+    and saves the split (default: split.json beside the first store); every later run,
+    `predict` and `evaluate` read it. Adam, with the paper's learning rate
     and batch size by default. The run folder gets the resolved config (reload it with --config
     RUN/config.json), the house split, a checkpoint (--resume continues from it), the
     metrics as CSV and a loss-curve PNG at the end.
@@ -92,7 +102,7 @@ def train(config, run_dir, device, workers, resume, tensorboard):
     console = Console(highlight=False, stderr=True)
     with _train_bar(console) as bar:
         result = run_training(config, run, device=device, workers=workers, resume=resume,
-                              tensorboard=tensorboard, progress=_TrainBar(bar))
+                              tensorboard=tensorboard, wandb=wandb, progress=_TrainBar(bar))
     console.print(f"{result.run}: {plural(result.steps, 'step')}, {plural(result.epochs, 'epoch')} in "
                   f"{result.seconds:.1f} s "
                   f"({result.images_per_s:.1f} images/s); train loss {result.train_loss:.4g}, "
@@ -111,8 +121,9 @@ def train(config, run_dir, device, workers, resume, tensorboard):
               help="DataLoader worker processes.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def predict(run, store, out, config, device, workers, overwrite):
-    """Write the predictions of the trained RUN for every view of STORE to the store OUT,
-    in the store layout, so `sceneforge evaluate` reads them like ground truth.
+    """Write the predictions of the trained RUN for the test views of STORE (the houses of
+    the run's split file; --split all: every view) to the store OUT, in the store layout,
+    so `sceneforge evaluate` reads them like ground truth.
 
     An overhead run predicts the frontal layers and classes (with its frozen depth and
     segmentation runs) and the overhead heights and classes; a depth or seg run only its
@@ -127,6 +138,9 @@ def predict(run, store, out, config, device, workers, overwrite):
     console = Console(highlight=False, stderr=True)
     with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,
-                                 device=device, workers=workers, overwrite=overwrite, progress=RichProgress(bar))
+                                 split=config.split, split_file=config.split_file, floor=config.floor_removal,
+                                 device=device, workers=workers,
+                                 overwrite=overwrite, progress=RichProgress(bar))
+    console.print(f"split: {summary.split} ({summary.predicted} views of {summary.houses} houses)")
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "
                   f"({', '.join(summary.stages)}) in {summary.seconds:.1f} s")

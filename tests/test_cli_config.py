@@ -98,7 +98,10 @@ def test_options_typed_override_the_file_and_others_leave_it_alone(tmp_path):
 
 def test_one_option_may_set_several_fields(tmp_path):
     got = resolved(TrainConfig, TRAIN_OPTIONS, "s.zarr", "--stage", "seg", "--seed", 4, "--gating", "surface")
-    assert (got["seed"], got["split"]["seed"], got["eft"]["gating"], got["stores"]) == (4, 4, "surface", ["s.zarr"])
+    # the split has its own seed (issue 14): --seed leaves it alone
+    assert (got["seed"], got["split"]["seed"], got["eft"]["gating"], got["stores"]) == (4, 0, "surface", ["s.zarr"])
+    got = resolved(TrainConfig, TRAIN_OPTIONS, "s.zarr", "--stage", "seg", "--split-seed", 5)
+    assert (got["seed"], got["split"]["seed"]) == (0, 5)
     path = tmp_path / "t.json"
     path.write_text(json.dumps({"stage": "depth", "stores": ["a.zarr", "b.zarr"], "split": {"seed": 9}}))
     got = resolved(TrainConfig, TRAIN_OPTIONS, "--config", path, "--lr", 0.01)

@@ -76,10 +76,11 @@ def test_coverage_with_the_reference_preset_says_so(store, tmp_path):
 
 def test_predictions_of_the_ground_truth_itself(store, tmp_path):
     png = tmp_path / "pred.png"
-    res = run("evaluate", "predictions", store, store, "--density", 1000, "--plot", png)
+    res = run("evaluate", "predictions", store, store, "--density", 1000, "--plot", png, "--split", "all")
     assert res.exit_code == 0, res.output
-    assert res.output.splitlines()[1] == "meshing: edge factor preset paper: a = 7 for every layer"
-    lines = {line[:18].strip(): line[18:].split() for line in res.output.splitlines()[3:7]}
+    assert res.output.splitlines()[0] == "split: all (3 views of 3 houses)"
+    assert res.output.splitlines()[2] == "meshing: edge factor preset paper: a = 7 for every layer"
+    lines = {line[:18].strip(): line[18:].split() for line in res.output.splitlines()[4:8]}
     assert list(lines) == ["D1", "D1 & overhead", "D1-4", "D1-4 & overhead"]
     assert lines["D1-4 & overhead"][2:] == ["0.519", "0.457"]
     # ground-truth layers lie on the ground-truth objects, but for triangles the edge rule
@@ -112,7 +113,7 @@ def test_predictions_from_other_cameras_are_one_red_line(store, tmp_path, monkey
         return Moved(real(path[:-len("#moved")])) if path.endswith("#moved") else real(path)
 
     monkeypatch.setattr(sceneforge.store, "open_store", open_store)
-    res = run("evaluate", "predictions", f"{store}#moved", store, "--plot", tmp_path / "p.png")
+    res = run("evaluate", "predictions", f"{store}#moved", store, "--plot", tmp_path / "p.png", "--split", "all")
     assert res.exit_code == 1
     assert res.output.count("\n") == 1 and "another camera pose" in res.output
     assert "Traceback" not in res.output

@@ -20,6 +20,7 @@ from sceneforge.learn.config import FROZEN  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
     CLASS_TO_NYU40,
+    EMPTY,
     RGB_MEAN,
     SplitConfig,
     StoreDataset,
@@ -116,14 +117,78 @@ def test_segmentation_targets_merge_the_envelope_into_background():
 def test_segmentation_and_height_losses():
     target = torch.tensor([[[[3, 0], [7, 39]], [[0, 0], [5, 5]]]])  # (1, 2, 2, 2)
     uniform = torch.zeros(1, 80, 2, 2)
-    assert segmentation_loss(uniform, target).item() == pytest.approx(2 * math.log(40))
+    assert segmentation_loss(uniform, target).item() == pytest.approx(math.log(40))  # the layers' mean
     sure = torch.full((1, 2, 40, 2, 2), -30.0)
     sure.scatter_(2, target.unsqueeze(2), 30.0)
     assert segmentation_loss(sure.reshape(1, 80, 2, 2), target).item() < 1e-6
+    # empty pixels (the ray hits nothing) are ignored: wrong scores there change nothing,
+    # unless they are counted as background
+    empty = target.clone()
+    empty[0, 0, 0, 0] = EMPTY
+    wrong = sure.clone()
+    wrong[0, 0, :, 0, 0] = 0.0
+    wrong[0, 0, 5, 0, 0] = 30.0
+    assert segmentation_loss(wrong.reshape(1, 80, 2, 2), empty).item() < 1e-6
+    as_background = segmentation_loss(wrong.reshape(1, 80, 2, 2), empty, LossConfig(seg_empty="background"))
+    assert as_background.item() == pytest.approx(30 / 4 / 2, rel=1e-4)  # 30 on one pixel of 4, one layer of 2
 
     height = torch.tensor([[[1.0, torch.nan], [0.5, torch.nan]]])
     pred = torch.tensor([[[[1.5, 99.0], [0.0, -99.0]]]])
     assert height_loss(pred, height).item() == pytest.approx(0.5)
+    assert height_loss(pred, height, torch.tensor([[[True, True], [False, False]]])).item() == pytest.approx(0.5)
+
+
+def test_changing_the_floors_height_target_leaves_the_height_loss_unchanged(store):
+    from sceneforge.learn.stages import overhead_height_loss
+
+    batch = next(iter(torch.utils.data.DataLoader(StoreDataset(index_stores([store]), ("overhead_height",)),
+                                                  batch_size=3)))
+    floor = ~batch["overhead_foreground"] & torch.isfinite(batch["overhead_height"])
+    assert floor.any() and batch["overhead_foreground"].any()
+    np.testing.assert_array_equal(batch["overhead_height"][floor].numpy(), 0.0)
+    raised = {**batch, "overhead_height": torch.where(floor, torch.tensor(2.5), batch["overhead_height"])}
+    pred = torch.rand(3, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+    paper = small_config("overhead", store)
+    assert not paper.floor_as_zero
+    assert overhead_height_loss(paper, pred, raised).item() == overhead_height_loss(paper, pred, batch).item()
+    alternative = small_config("overhead", store, floor_as_zero=True)
+    assert overhead_height_loss(alternative, pred, raised).item() > overhead_height_loss(alternative, pred, batch).item()
+
+
+def test_the_floor_leaves_predicted_heights_by_the_overhead_segmentation():
+    from sceneforge.learn.predict import overhead_heights
+
+    height = torch.tensor([[[0.02, 0.3, 0.8]]])
+    logits = torch.zeros(1, 40, 1, 3)
+    logits[0, BACKGROUND, 0, 1] = 1.0  # background at the 30 cm pixel
+    logits[0, 7, 0, [0, 2]] = 1.0
+    paper = overhead_heights(height, logits)
+    assert torch.isnan(paper[0, 0, :2]).all() and paper[0, 0, 2] == pytest.approx(0.8)
+    by_height = overhead_heights(height, logits, floor="height")
+    assert torch.isnan(by_height[0, 0, 0]) and by_height[0, 0, 1:].tolist() == pytest.approx([0.3, 0.8])
+
+
+def test_validation_metrics_against_hand_computed_values():
+    from sceneforge.learn.metrics import Metrics, depth_errors, height_error, segmentation_iou
+
+    m = Metrics()
+    target = torch.full((1, 5, 1, 2), torch.nan)
+    target[0, 0] = torch.tensor([[2.0, 4.0]])
+    pred = torch.zeros(1, 5, 1, 2)
+    pred[0, 0] = torch.tensor([[3.0, 4.0]])
+    depth_errors(pred, target, m)
+    depth_errors(pred, target, m)  # a second batch: pooled, not averaged per batch
+    r = m.result()
+    assert r["d1_absrel"] == pytest.approx(0.25) and r["d1_rmse"] == pytest.approx(math.sqrt(0.5))
+    assert math.isnan(r["d2_absrel"])  # no finite target
+    m = Metrics()
+    logits = torch.zeros(1, 40, 1, 4)
+    logits[0, [1, 1, 2, 2], 0, [0, 1, 2, 3]] = 1  # predicted classes 1 1 2 2
+    segmentation_iou(logits, torch.tensor([[[1, 2, 2, EMPTY]]]), m, "miou")
+    assert m.result()["miou"] == pytest.approx((1 / 2 + 1 / 2) / 2)  # class 1: 1/2, class 2: 1/2
+    m = Metrics()
+    height_error(torch.tensor([[[[0.5, 0.0, 9.0]]]]), torch.tensor([[[0.3, 0.04, torch.nan]]]), m)
+    assert m.result()["height_l1_above_5cm"] == pytest.approx(0.2)
 
 
 def test_masked_layers_empty_the_background():
@@ -198,8 +263,10 @@ def test_dataset_reads_lazily_and_works_with_workers(store):
     np.testing.assert_array_equal(s["overhead_height"].numpy()[floor_only], 0.0)
     nothing = np.isnan(raw["overhead_height"]) & ~floor_only
     assert np.isnan(s["overhead_height"].numpy()[nothing]).all()
-    bare = StoreDataset(index, ("overhead_height",), floor_as_zero=False)[0]["overhead_height"].numpy()
-    np.testing.assert_array_equal(np.isnan(bare), np.isnan(raw["overhead_height"]))
+    np.testing.assert_array_equal(s["overhead_foreground"].numpy(), np.isfinite(raw["overhead_height"]))
+    void = np.isnan(raw["overhead_depth"]).all(axis=0)
+    np.testing.assert_array_equal(s["overhead_seg"].numpy() == EMPTY, void)
+    np.testing.assert_array_equal(s["seg"].numpy() == EMPTY, np.isnan(raw["depth"][[0, 2]]) & np.isnan(raw["depth"][4]))
 
     pickle.loads(pickle.dumps(ds))  # no zarr handle travels to workers
     serial = list(torch.utils.data.DataLoader(ds, batch_size=4))
@@ -284,15 +351,20 @@ def test_a_diverged_loss_is_an_expected_error():
 def test_the_epoch_loop_logs_validates_and_checkpoints_on_schedule(tmp_path):
     # 8 views in batches of 3: 3 steps an epoch, the last one of 2 views
     trainer = _depth_trainer(batch_size=3, epochs=2, log_every=2, checkpoint_every=100)
-    log = MetricsLog(tmp_path, (), None, tensorboard=False)
-    checkpoint = Checkpoint(tmp_path / "checkpoint.pt")
-    loop = EpochLoop(trainer, _Views(8), _Views(3), 6, log, checkpoint)
+    log = MetricsLog(tmp_path, (), None, tensorboard=False, metrics=get_stage("depth").val_metrics)
+    checkpoint, best = Checkpoint(tmp_path / "checkpoint.pt"), Checkpoint(tmp_path / "best.pt")
+    loop = EpochLoop(trainer, _Views(8), _Views(3), 6, log, checkpoint, best=best)
     end = loop.run(Position())
     assert end == Position(6, 2, 0) and checkpoint.load()["step"] == 6
     rows = read_metrics(tmp_path / "metrics.csv")
     assert [(int(r["step"]), int(r["epoch"]), r["split"]) for r in rows] == [
         (2, 0, "train"), (3, 0, "val"), (4, 1, "train"), (6, 1, "train"), (6, 1, "val")]
     assert loop.train_loss == float(rows[3]["loss"]) and loop.val_loss == float(rows[4]["loss"])
+    val = [r for r in rows if r["split"] == "val"]
+    assert all(float(r[f"d{k}_{m}"]) > 0 for r in val for k in range(1, 6) for m in ("absrel", "rmse"))
+    assert all(r["d1_rmse"] == "" for r in rows if r["split"] == "train")
+    lowest = min(val, key=lambda r: float(r["loss"]))
+    assert best.load()["step"] == int(lowest["step"])  # the best epoch's weights, beside the latest
     assert all(net.training for net in trainer.nets.values())  # validation hands them back in training mode
 
     stopped = EpochLoop(_depth_trainer(batch_size=3, epochs=2, log_every=2), _Views(8), _Views(3), 2, log,
@@ -315,6 +387,7 @@ def test_every_stage_trains_two_steps_on_cpu(stage, store, frontal_runs, tmp_pat
     assert result.steps == 2 and math.isfinite(result.train_loss)
     rows = read_metrics(run / "metrics.csv")
     assert [int(r["step"]) for r in rows] == [1, 2] and all(float(r["loss"]) > 0 for r in rows)
+    assert set(get_stage(stage).val_metrics) <= set(rows[0])  # the validation metrics' columns
     saved = read_config(run)
     assert saved == TrainConfig.from_dict(json.loads((run / "config.json").read_text()))
     # the EFT's resolution is the stores' (32 here), not a saved setting: a mismatch with the
@@ -355,7 +428,7 @@ def test_missing_frozen_run_is_an_expected_error(store, tmp_path):
 def test_depth_net_overfits_four_views(store, tmp_path):
     # one house held out for validation leaves 4 views: every step sees all of them
     config = small_config("depth", store, batch_size=4, epochs=60, max_steps=None, lr=2e-3,
-                          split=SplitConfig(0.34, 0.0))
+                          split=SplitConfig(0.34, 0.0, file=str(tmp_path / "split.json")))
     result = train(config, tmp_path / "overfit", device="cpu", tensorboard=False)
     rows = [r for r in read_metrics(tmp_path / "overfit" / "metrics.csv") if r["split"] == "train"]
     assert json.loads((tmp_path / "overfit" / "split.json").read_text())["train"]["views"] == 4
@@ -376,7 +449,7 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
                        max_steps=1), run, device="cpu", tensorboard=False)
     out = tmp_path / "pred.zarr"
-    summary = predict(run, store, str(out), device="cpu", batch_size=4)
+    summary = predict(run, store, str(out), device="cpu", batch_size=4, split="all")
     assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
@@ -399,7 +472,7 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     camera = tmp_path / "camera"
     train(small_config("camera", store, depth_run=frontal_runs["depth"], max_steps=1), camera, device="cpu",
           tensorboard=False)
-    summary = predict(run, store, str(out), camera_run=camera, device="cpu", overwrite=True)
+    summary = predict(run, store, str(out), camera_run=camera, device="cpu", overwrite=True, split="all")
     assert summary.stages == ("depth", "seg", "overhead", "camera")
     p, t = open_store(str(out)).view(0), open_store(store).view(0)
     np.testing.assert_allclose(p["overhead_params"][[2, 3]], t["overhead_params"][[2, 3]])  # tz, theta known
@@ -453,6 +526,147 @@ def test_cli_train_and_predict(store, frontal_runs, tmp_path):
     assert again.exit_code == 1 and "already holds a run" in again.output and "Traceback" not in again.output
 
     out = str(tmp_path / "p.zarr")
-    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out, "--device", "cpu"])
+    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out, "--device", "cpu", "--split", "all"])
     assert result.exit_code == 0, result.output
     assert "6 of 6 views predicted (depth)" in " ".join(result.output.split())
+    # the runs above split with no test houses: the default split is empty, and says how to fix it
+    result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out + "2", "--device", "cpu"])
+    assert result.exit_code == 1 and "no valid view of the 0 test houses" in result.output
+    assert "--split all" in result.output and "Traceback" not in result.output
+
+
+# ---------------------------------------------------------------------------- the split
+
+
+def test_the_split_is_drawn_once_and_names_its_fixes(tmp_path):
+    from sceneforge.learn.split import draw_split, fixed_split, read_split
+
+    ids = [f"h{i}" for i in range(3)]
+    with pytest.raises(SceneforgeError, match=r"3 houses cannot give a 0.1 validation split: use "
+                                              r"--val-fraction >= 0.34 \(or 0 for none\) or more houses"):
+        draw_split(ids, SplitConfig(0.1, 0.0))
+    with pytest.raises(SceneforgeError, match="3 houses cannot give a 0.2 test split: use --test-fraction >= 0.34"):
+        draw_split(ids, SplitConfig(0.0, 0.2))
+    path = tmp_path / "split.json"
+    first = fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path)))
+    assert [len(first.houses[s]) for s in ("train", "val", "test")] == [1, 1, 1]
+    assert read_split(path) == first and path.exists()
+    # a later stage reads the file, whatever it draws its weights with
+    assert fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path))) == first
+    with pytest.raises(SceneforgeError, match="--split-seed 5: pass the same, or --split-file NEW.json"):
+        fixed_split(ids, ["a.zarr"], SplitConfig(0.34, 0.34, seed=6, file=str(path)))
+    with pytest.raises(SceneforgeError, match="splits other stores: 1 houses \\(h9\\)"):
+        fixed_split([*ids, "h9"], ["a.zarr"], SplitConfig(0.34, 0.34, seed=5, file=str(path)))
+    with pytest.raises(SceneforgeError, match="no split file .*train a run on these stores first"):
+        read_split(tmp_path / "none.json")
+
+
+def test_stages_share_the_split_and_predict_and_evaluate_use_its_test_houses(store, tmp_path):
+    import click
+    from click.testing import CliRunner
+    from sceneforge.cli.main import LazyGroup
+
+    from sceneforge.learn.split import read_split
+    from sceneforge.store import open_store
+
+    split_file = tmp_path / "split.json"
+    split = SplitConfig(0.0, 0.34, seed=3, file=str(split_file))
+    a = train(small_config("depth", store, max_steps=1, split=split), tmp_path / "a", device="cpu",
+              tensorboard=False)
+    # another training seed, the same houses: the split is the data's
+    train(small_config("depth", store, max_steps=1, seed=9, split=split), tmp_path / "b", device="cpu",
+          tensorboard=False)
+    records = [json.loads((tmp_path / r / "split.json").read_text()) for r in ("a", "b")]
+    assert records[0]["test"] == records[1]["test"] and records[0]["test"]["views"] == 2
+    test_houses = read_split(split_file).of("test")
+    assert len(test_houses) == 1 and records[0]["test"]["houses"] == sorted(test_houses)
+
+    @click.group(cls=LazyGroup, lazy={"predict": "train:predict", "evaluate": "evaluate:evaluate"})
+    def cli():
+        pass
+
+    out = str(tmp_path / "p.zarr")
+    result = CliRunner().invoke(cli, ["predict", str(a.run), store, out, "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert "split: test (2 views of 1 houses)" in result.output
+    pred = open_store(out)
+    predicted = pred.attrs["prediction"]["views"]
+    assert len(predicted) == 2 and {str(pred.array("house_id")[i]) for i in predicted} == test_houses
+    assert pred.attrs["prediction"]["split_file"] == str(split_file.resolve())
+
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--density", "200",
+                                      "--plot", str(tmp_path / "p.png")])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert lines[0] == "split: test (2 views of 1 houses)"
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--split", "train", "--density", "200",
+                                      "--plot", str(tmp_path / "p.png")])
+    assert result.exit_code == 1 and "no predicted view of the train split" in result.output
+
+
+# --------------------------------------------------------------------------- reconstruct
+
+
+def test_reconstruct_a_rendered_photo_gives_a_mesh_inside_the_cameras_frustum(store, frontal_runs, tmp_path):
+    import trimesh
+    from click.testing import CliRunner
+    from PIL import Image
+    from sceneforge.cli.main import LazyGroup
+
+    from sceneforge.store import open_store
+
+    run = tmp_path / "overhead"
+    train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
+                       max_steps=1), run, device="cpu", tensorboard=False)
+    view = open_store(store).view(0)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    Image.fromarray(view["rgb"]).save(photos / "room.png")
+    K = view["K"]
+    cli = LazyGroup(name="sceneforge", lazy={"reconstruct": "reconstruct:reconstruct"})
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["reconstruct", str(run), str(photos), "--out", str(out), "--device", "cpu",
+                                      "--K", *map(str, (K[0, 0], K[1, 1], K[0, 2], K[1, 2])),
+                                      "--resolution", "32", "--floor-removal", "height"])
+    assert result.exit_code == 0, result.output
+    assert "1 photos reconstructed" in " ".join(result.output.split())
+    arrays = np.load(out / "room.npz")
+    assert arrays["depth"].shape == (5, 48, 64) and arrays["overhead_height"].shape == (32, 32)
+    np.testing.assert_allclose(arrays["K"], K)
+    assert (out / "room.png").stat().st_size > 5000
+    mesh = trimesh.load(out / "room.ply", process=False)
+    assert len(mesh.faces) > 100
+    pose = arrays["cam_to_world"]
+    cam = (np.asarray(mesh.vertices) - pose[:3, 3]) @ pose[:3, :3]
+    uv = cam @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    eps = 1e-6
+    assert (cam[:, 2] > 0).all()
+    assert ((u >= -eps) & (u <= 64 + eps) & (v >= -eps) & (v <= 48 + eps)).all()
+    # the camera sits 1.5 m above the floor of a gravity-aligned frame: nothing is far below it
+    assert np.asarray(mesh.vertices)[:, 1].min() > -1.5 - 0.5
+
+    bad = CliRunner().invoke(cli, ["reconstruct", frontal_runs["depth"], str(photos), "--out", str(out)])
+    assert bad.exit_code == 1 and "reconstruct needs an overhead run" in bad.output
+
+
+def test_reconstructed_overhead_heights_are_kept_inside_the_frustum():
+    from sceneforge.learn.reconstruct import PhotoCamera, _one, _overhead_camera
+
+    camera = PhotoCamera()
+    K, pose = camera.intrinsics(32, 24), camera.pose()
+    depth = np.full((5, 24, 32), np.nan, np.float32)
+    depth[4] = 4.0  # a wall 4 m ahead
+    top = _overhead_camera(depth, K, pose, camera, 16)
+    assert top.params[2] == pytest.approx(camera.height + top.cam_to_world[1, 3])  # tz: above the floor at -1.5
+    rec = _one("wall", np.zeros((24, 32, 3), np.uint8), depth, np.zeros((2, 24, 32), np.uint8),
+               np.ones((16, 16), np.float32), np.zeros((16, 16), np.uint8), K, pose, top.cam_to_world,
+               top.half_extent, top.params)
+    kept = np.isfinite(rec.arrays["overhead_height"])
+    assert 0 < kept.sum() < kept.size  # the overhead square reaches outside the frustum
+    cam = (rec.vertices - pose[:3, 3]) @ pose[:3, :3]
+    uv = cam @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    assert (cam[:, 2] > 0).all() and ((u >= -1e-6) & (u <= 32 + 1e-6) & (v >= -1e-6) & (v <= 24 + 1e-6)).all()
+    heights = rec.vertices[:, 1] + camera.height
+    assert np.isclose(heights, 1.0, atol=1e-6).sum() >= kept.sum()  # the 1 m heights are in the mesh

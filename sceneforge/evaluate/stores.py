@@ -6,7 +6,7 @@ A store here is anything :func:`sceneforge.store.open_store` returns (``len``, `
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,13 +16,34 @@ from .inputs import EvalView, GroundTruthMesh
 from .voxels import VoxelConfig, VoxelScore, score_voxels
 
 
-def views_to_score(store, limit: int | None = None) -> list[int]:
+def views_to_score(store, limit: int | None = None, houses: Collection[str] | None = None) -> list[int]:
     """Indices of the views to score: those among the first ``limit`` whose ground truth
-    did not fail (a failed view is blank in the store)."""
+    did not fail (a failed view is blank in the store), of ``houses`` (None: any house),
+    and, in a store of predictions, that were predicted (its ``prediction`` attribute's
+    ``views``; the others are blank)."""
     n = len(store) if limit is None else min(limit, len(store))
-    if "valid" not in store.names:
-        return list(range(n))
-    return np.flatnonzero(np.asarray(store.array("valid")[:n], dtype=bool)).tolist()
+    keep = np.ones(n, dtype=bool)
+    if "valid" in store.names:
+        keep &= np.asarray(store.array("valid")[:n], dtype=bool)
+    predicted = (getattr(store, "attrs", None) or {}).get("prediction", {}).get("views")
+    if predicted is not None:
+        keep &= np.isin(np.arange(n), np.asarray(predicted, dtype=np.int64))
+    if houses is not None:
+        ids = np.array([str(h) for h in store.array("house_id")[:n]])
+        keep &= np.isin(ids, np.array(sorted(houses), dtype=str))
+    return np.flatnonzero(keep).tolist()
+
+
+def empty_views(store, indices: Collection[int]) -> list[int]:
+    """Those of ``indices`` whose layers D1..D4 and overhead heights hold no finite value:
+    an empty prediction (scored precision 1, recall 0 by convention)."""
+    empty = []
+    for i in indices:
+        depth = np.asarray(store.array("depth")[i][:4])
+        height = np.asarray(store.array("overhead_height")[i]) if "overhead_height" in store.names else None
+        if not np.isfinite(depth).any() and (height is None or not np.isfinite(height).any()):
+            empty.append(int(i))
+    return empty
 
 
 def matching_view(pred, gt, i: int) -> dict:
@@ -49,10 +70,12 @@ def coverage_views(store, limit: int | None = None) -> Iterator[tuple[int, EvalV
         yield i, EvalView.from_arrays(store.view(i)), GroundTruthMesh.from_arrays(store.mesh(i))
 
 
-def prediction_views(pred, gt, limit: int | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+def prediction_views(pred, gt, limit: int | None = None, houses: Collection[str] | None = None,
+                     indices: Collection[int] | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
     """``(index, predicted view, ground-truth mesh)``: the layers and cameras of ``pred``
-    against the meshes of ``gt``, view ``i`` of one checked to be view ``i`` of the other."""
-    for i in views_to_score(pred, limit):
+    against the meshes of ``gt``, view ``i`` of one checked to be view ``i`` of the other;
+    the views of ``houses`` (None: all), or exactly ``indices`` when given."""
+    for i in (views_to_score(pred, limit, houses) if indices is None else indices):
         yield i, EvalView.from_arrays(matching_view(pred, gt, i)), GroundTruthMesh.from_arrays(gt.mesh(i))
 
 

@@ -24,6 +24,12 @@ EFT_LAYERS: tuple[str, ...] = typing.get_args(EFTLayers)
 #: how the EFT gates features along a ray
 Gating = Literal["volume", "surface"]
 GATINGS: tuple[str, ...] = typing.get_args(Gating)
+#: what the segmentation losses make of pixels where the ray hits nothing
+SegEmpty = Literal["ignore", "background"]
+#: how the floor is removed from predicted overhead heights
+FloorRemoval = Literal["segmentation", "height"]
+#: the views a prediction or an evaluation takes: the houses of one split, or every view
+SplitName = Literal["test", "val", "train", "all"]
 
 
 @dataclass(frozen=True)
@@ -55,18 +61,30 @@ class LossConfig:
     envelope_weight: float = 0.5
     #: weight of the overhead segmentation loss next to the overhead height loss
     overhead_seg_weight: float = 1.0
+    #: pixels where the ray hits nothing in the segmentation losses: "ignore" them (the
+    #: authors') or count them as "background"
+    seg_empty: SegEmpty = "ignore"
+
+    def __post_init__(self):
+        if self.seg_empty not in typing.get_args(SegEmpty):
+            raise ValueError(f"seg_empty must be one of {typing.get_args(SegEmpty)}, got {self.seg_empty!r}")
 
 
 @dataclass(frozen=True)
 class SplitConfig:
-    """How houses are divided into train, validation and test."""
+    """How houses are divided into train, validation and test: once per set of stores, saved
+    in a split file that every later stage, ``predict`` and ``evaluate`` read
+    (:mod:`sceneforge.learn.split`)."""
 
     #: fraction of the houses (rounded down) held out for validation
     val_fraction: float = 0.1
     #: fraction of the houses (rounded down) held out for testing
     test_fraction: float = 0.1
-    #: seed of the shuffle that assigns houses to splits
+    #: seed of the shuffle that assigns houses to splits (its own: not the training seed)
     seed: int = 0
+    #: the split file, written by the first run on the stores and read by every later one;
+    #: None = split.json beside the first store
+    file: str | None = None
 
     def __post_init__(self):
         v, t = self.val_fraction, self.test_fraction
@@ -108,9 +126,10 @@ class TrainConfig:
     #: frontal layers the EFT reads in the overhead stage: "predicted" (the frozen nets'
     #: depths, masked by their segmentation) or "truth" (the store's)
     eft_layers: EFTLayers = "predicted"
-    #: overhead height targets are 0 where only the floor is seen (else only object pixels
-    #: are supervised and the net never learns the floor)
-    floor_as_zero: bool = True
+    #: also supervise the overhead heights where only the floor is seen, as 0 (the paper's
+    #: rejected alternative, which lets the height net segment the floor; default: object
+    #: pixels only, the floor being removed by the overhead segmentation at test time)
+    floor_as_zero: bool = False
     #: write a train row to the metrics every this many steps
     log_every: int = 10
     #: save the checkpoint every this many steps (and at the end of every epoch)
@@ -182,8 +201,21 @@ class PredictConfig:
     #: a camera proposal run: place the overhead cameras from its predictions instead of
     #: the store's
     camera_run: str | None = None
+    #: the views to predict: those of the houses of this split ("all": every view)
+    split: SplitName = "test"
+    #: the split file; None = the one the run was trained with
+    split_file: str | None = None
+    #: how the floor is removed from the overhead heights: "segmentation" (where the overhead
+    #: segmentation net sees background, the paper's) or "height" (only by the threshold);
+    #: heights at or below 5 cm are removed either way (the paper evaluates only above)
+    floor_removal: FloorRemoval = "segmentation"
 
     def __post_init__(self):
+        if self.floor_removal not in typing.get_args(FloorRemoval):
+            raise ValueError(f"floor_removal must be one of {typing.get_args(FloorRemoval)}, "
+                             f"got {self.floor_removal!r}")
+        if self.split not in typing.get_args(SplitName):
+            raise ValueError(f"split must be one of {typing.get_args(SplitName)}, got {self.split!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
 

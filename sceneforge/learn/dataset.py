@@ -3,43 +3,51 @@
 - **Lazy reads**: a :class:`StoreDataset` keeps only view indices; each sample reads its
   own chunks of the arrays it needs. Stores are opened on first use in each process and
   never pickled, so any number of DataLoader workers can read at once.
-- **House-level split** (:func:`split_houses`): every view of a house falls in the same
-  split, so validation and test views show houses the networks never saw.
+- **House-level split** (:mod:`.split`): every view of a house falls in the same split,
+  fixed once per set of stores, so validation and test views show houses the networks
+  never saw.
 - **Input normalisation** *(ref)*: ``(rgb − mean) / 255`` with the mean colour of the PBRS
   images, :data:`RGB_MEAN`.
 - **Segmentation targets** (:func:`segmentation_target`): 40 classes per layer; class
   ``c > 0`` is the NYU40 object class ``c + 1``, class 0 (:data:`BACKGROUND`, the slot of
-  "wall") is background: no object in that layer, void, or any room-envelope class
-  merged into one *(paper appendix)*.
+  "wall") is background: no object in that layer or any room-envelope class merged into
+  one *(paper appendix)*; :data:`EMPTY` marks pixels where the ray hits nothing at all
+  (void), which the loss ignores by default *(ref)*.
+- **Overhead height targets**: the store's object heights, 0 where only the floor is seen,
+  NaN where nothing is; ``overhead_foreground`` marks the object pixels, the only ones the
+  paper supervises (``floor_as_zero`` supervises the floor too).
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Collection, Sequence
 
 import numpy as np
 import torch
 
 from ..conventions import NYU40_NAMES, is_envelope
 from ..errors import SceneforgeError
-from .config import SplitConfig  # defined without torch, for the CLI and the schema
+from .config import SplitConfig  # noqa: F401  (defined without torch, for the CLI and the schema)
+from .split import SPLITS, split_houses  # noqa: F401  (re-exported: the split needs no torch)
 
 #: mean RGB colour (0..255) subtracted from every input image *(ref: PBRS renderings)*
 RGB_MEAN = (178.1781, 158.5039, 142.5141)
 #: segmentation classes per layer (frontal layers 1 and 3, and the overhead view)
 SEG_CLASSES = 40
-#: the background class: void, no object, and every room-envelope class
+#: the background class: no object, and every room-envelope class
 BACKGROUND = 0
+#: the target of a pixel where the ray hits nothing (PyTorch's ignore index)
+EMPTY = -100
 
 #: sample keys → the store arrays they are made from
 SAMPLE_FIELDS: dict[str, tuple[str, ...]] = {
     "rgb": ("rgb",),
     "depth": ("depth",),
-    "seg": ("category",),
+    "seg": ("category", "depth"),
     "overhead_height": ("overhead_height", "overhead_depth"),
-    "overhead_seg": ("overhead_category",),
+    "overhead_seg": ("overhead_category", "overhead_depth"),
     "camera": ("K", "cam_to_world", "overhead_cam_to_world", "overhead_extent", "overhead_params"),
 }
 
@@ -65,24 +73,11 @@ NYU40_TO_CLASS = _class_table()
 CLASS_TO_NYU40 = np.where(np.arange(SEG_CLASSES) == BACKGROUND, 0, np.arange(SEG_CLASSES) + 1)
 
 
-def segmentation_target(category: np.ndarray) -> np.ndarray:
-    """NYU40 ids (any shape, uint8) → segmentation classes (same shape, int64)."""
-    return NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
-
-
-SPLITS = ("train", "val", "test")
-
-
-def split_houses(house_ids: Sequence[str], config: SplitConfig | None = None) -> dict[str, list[str]]:
-    """Assign houses to ``train``, ``val`` and ``test``: sorted ids shuffled with the seed,
-    then the first ⌊val·n⌋ to val, the next ⌊test·n⌋ to test, the rest to train. The same
-    houses and seed always give the same split."""
-    config = config or SplitConfig()
-    ids = sorted(set(map(str, house_ids)))
-    order = [ids[i] for i in np.random.default_rng(config.seed).permutation(len(ids))]
-    n_val, n_test = int(config.val_fraction * len(ids)), int(config.test_fraction * len(ids))
-    return {"val": sorted(order[:n_val]), "test": sorted(order[n_val:n_val + n_test]),
-            "train": sorted(order[n_val + n_test:])}
+def segmentation_target(category: np.ndarray, empty: np.ndarray | None = None) -> np.ndarray:
+    """NYU40 ids (any shape, uint8) → segmentation classes (same shape, int64), :data:`EMPTY`
+    where ``empty`` (bool, same shape) is set."""
+    classes = NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
+    return classes if empty is None else np.where(empty, EMPTY, classes)
 
 
 @dataclass(frozen=True)
@@ -102,7 +97,10 @@ class ViewIndex:
     house: np.ndarray
     shapes: dict
 
-    def subset(self, houses: Sequence[str]) -> "ViewIndex":
+    def subset(self, houses: Collection[str] | None) -> "ViewIndex":
+        """The views of ``houses`` (None: every view)."""
+        if houses is None:
+            return self
         keep = np.isin(self.house, np.asarray(list(houses), dtype=self.house.dtype))
         return ViewIndex(self.stores, self.store[keep], self.view[keep], self.house[keep], self.shapes)
 
@@ -145,23 +143,24 @@ class StoreDataset(torch.utils.data.Dataset):
 
     - ``rgb``: (3, H, W) float32 normalised input
     - ``depth``: (5, H, W) float32 D1..D5 metres, NaN = none
-    - ``seg``: (2, H, W) int64 classes of layers 1 and 3
-    - ``overhead_height``: (Ho, Wo) float32 height above the floor; with ``floor_as_zero``,
-      0 where only the floor is hit; NaN where nothing is
-    - ``overhead_seg``: (Ho, Wo) int64 class of the first object seen from above
+    - ``seg``: (2, H, W) int64 classes of layers 1 and 3, :data:`EMPTY` where the ray
+      hits nothing (neither the layer nor the envelope D5)
+    - ``overhead_height``: (Ho, Wo) float32 height above the floor, 0 where only the floor
+      is hit, NaN where nothing is; and ``overhead_foreground`` (Ho, Wo) bool: an object is hit
+    - ``overhead_seg``: (Ho, Wo) int64 class of the first object seen from above,
+      :data:`EMPTY` where nothing (not even the floor) is hit
     - ``camera``: ``K`` (3, 3), ``cam_to_world``, ``overhead_cam_to_world`` (4, 4),
       ``overhead_extent`` () and ``overhead_params`` (5,) float64
 
     Every sample also has ``index`` (its position in the dataset) int64.
     """
 
-    def __init__(self, index: ViewIndex, fields: Sequence[str], floor_as_zero: bool = True):
+    def __init__(self, index: ViewIndex, fields: Sequence[str]):
         unknown = set(fields) - set(SAMPLE_FIELDS)
         if unknown:
             raise ValueError(f"unknown sample fields {sorted(unknown)}; known: {sorted(SAMPLE_FIELDS)}")
         self.index = index
         self.fields = tuple(fields)
-        self.floor_as_zero = floor_as_zero
         self._open: tuple[int, list] | None = None
 
     def __len__(self) -> int:
@@ -188,16 +187,19 @@ class StoreDataset(torch.utils.data.Dataset):
         if "depth" in self.fields:
             out["depth"] = torch.from_numpy(read("depth").astype(np.float32))
         if "seg" in self.fields:
-            out["seg"] = torch.from_numpy(segmentation_target(read("category")[:2]))
+            depth = read("depth")
+            nothing = np.isnan(depth[[0, 2]]) & np.isnan(depth[4])
+            out["seg"] = torch.from_numpy(segmentation_target(read("category")[:2], nothing))
         if "overhead_height" in self.fields:
             height = read("overhead_height").astype(np.float32)
-            if self.floor_as_zero:
-                # the overhead D5 is the floor: where it alone is hit, the height is 0
-                floor = read("overhead_depth")[4]
-                height = np.where(np.isnan(height) & np.isfinite(floor), np.float32(0), height)
-            out["overhead_height"] = torch.from_numpy(height)
+            foreground = np.isfinite(height)
+            # the overhead D5 is the floor: where it alone is hit, the height is 0
+            floor = np.isfinite(read("overhead_depth")[4])
+            out["overhead_height"] = torch.from_numpy(np.where(~foreground & floor, np.float32(0), height))
+            out["overhead_foreground"] = torch.from_numpy(foreground)
         if "overhead_seg" in self.fields:
-            out["overhead_seg"] = torch.from_numpy(segmentation_target(read("overhead_category")))
+            nothing = np.isnan(read("overhead_depth")).all(axis=0)
+            out["overhead_seg"] = torch.from_numpy(segmentation_target(read("overhead_category"), nothing))
         if "camera" in self.fields:
             for name in SAMPLE_FIELDS["camera"]:
                 out[name] = torch.from_numpy(read(name).astype(np.float64))

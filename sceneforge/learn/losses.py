@@ -1,6 +1,7 @@
-"""Training losses (SPEC §10, paper equation 1). Targets use NaN for "no value"; every loss
-is normalised per example by its own number of valid pixels, then averaged over the batch,
-so a view with little content weighs as much as a full one."""
+"""Training losses (SPEC §10, paper equation 1). Targets use NaN (heights, depths) or
+:data:`~sceneforge.learn.dataset.EMPTY` (classes) for "no value"; the depth and height
+losses are normalised per example by its own number of valid pixels, then averaged over the
+batch, so a view with little content weighs as much as a full one."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from .config import LossConfig  # defined without torch, for the CLI and the schema
-from .dataset import SEG_CLASSES
+from .dataset import BACKGROUND, EMPTY, SEG_CLASSES
 
 
 def _per_example_mean(values: Tensor, valid: Tensor) -> Tensor:
@@ -20,12 +21,19 @@ def _per_example_mean(values: Tensor, valid: Tensor) -> Tensor:
 
 
 def depth_loss(pred: Tensor, target: Tensor, config: LossConfig | None = None) -> Tensor:
-    """Masked Huber loss of equation (1).
+    """Masked Huber loss of equation (1), ``L = Σ_l (M_l / ||M_l||_1) · ρ(D_l, D̄_l)``.
 
     pred   : (B, 5, H, W) predicted D1..D5
     target : (B, 5, H, W) true D1..D5, NaN where a layer is empty
     Returns a scalar: per example, Σ over layers of weight · mean Huber over the layer's
     finite targets; averaged over the batch.
+
+    The reading of the normalisation: ``||M_l||_1`` counts the valid pixels of layer ``l``
+    *of one example*, because equation 1 is written for one image's layers ``D`` (no batch
+    index) and the paper's masks are per image. So each layer of each view weighs the same
+    whatever its area (a D3 seen on 2 % of the pixels counts as much as D5 on all of them),
+    rather than the batch's pixels being pooled per layer. The envelope weight 0.5 is the
+    authors' code's, not the equation's (``LossConfig.envelope_weight``).
     """
     config = config or LossConfig()
     valid = torch.isfinite(target)
@@ -37,28 +45,39 @@ def depth_loss(pred: Tensor, target: Tensor, config: LossConfig | None = None) -
     return (per_layer * weights).sum(dim=1).mean()
 
 
-def segmentation_loss(logits: Tensor, target: Tensor) -> Tensor:
-    """Cross-entropy per layer, summed over layers.
+def segmentation_loss(logits: Tensor, target: Tensor, config: LossConfig | None = None) -> Tensor:
+    """Cross-entropy per layer over the batch's non-empty pixels, averaged over the layers
+    *(ref: the authors ignore empty pixels and average layers 1 and 3)*.
 
     logits : (B, L·40, H, W) class scores, layer after layer (L = 2 for the frontal net,
              1 for the overhead net)
-    target : (B, L, H, W) int64 classes, or (B, H, W) when L = 1
+    target : (B, L, H, W) int64 classes, :data:`EMPTY` where the ray hits nothing; or
+             (B, H, W) when L = 1
+    ``config.seg_empty == "background"`` counts empty pixels as background instead. A
+    layer without any non-empty pixel adds 0.
     """
+    config = config or LossConfig()
     B, C, H, W = logits.shape
     L = C // SEG_CLASSES
     target = target.reshape(B, L, H, W)
-    ce = F.cross_entropy(logits.reshape(B, L, SEG_CLASSES, H, W).transpose(1, 2), target, reduction="none")
-    return ce.mean(dim=(2, 3)).sum(dim=1).mean()
+    if config.seg_empty == "background":
+        target = torch.where(target == EMPTY, BACKGROUND, target)
+    ce = F.cross_entropy(logits.reshape(B, L, SEG_CLASSES, H, W).transpose(1, 2), target, reduction="none",
+                         ignore_index=EMPTY)
+    counted = (target != EMPTY).sum(dim=(0, 2, 3)).clamp(min=1)
+    return (ce.sum(dim=(0, 2, 3)) / counted).mean()
 
 
-def height_loss(pred: Tensor, target: Tensor) -> Tensor:
-    """L1 on finite overhead heights.
+def height_loss(pred: Tensor, target: Tensor, supervised: Tensor | None = None) -> Tensor:
+    """L1 on overhead heights, per example over its supervised pixels.
 
-    pred   : (B, 1, R, R) predicted heights above the floor
-    target : (B, R, R) true heights, NaN where unknown
+    pred       : (B, 1, R, R) predicted heights above the floor
+    target     : (B, R, R) true heights, NaN where unknown
+    supervised : (B, R, R) bool pixels to supervise (the paper: the foreground objects);
+                 default: every finite target
     """
     target = target.unsqueeze(1)
-    valid = torch.isfinite(target)
+    valid = torch.isfinite(target) if supervised is None else supervised.unsqueeze(1) & torch.isfinite(target)
     return _per_example_mean((pred - torch.nan_to_num(target)).abs(), valid).mean()
 
 

@@ -1,22 +1,27 @@
 """Predictions of trained runs, written in the store layout (SPEC §9, §10).
 
-``predict(run, store, out)`` runs a run's nets on every view of a store and writes a new
-store with the same per-view arrays, so the evaluation reads predictions exactly like
-ground truth:
+``predict(run, store, out)`` runs a run's nets on the views of a store's test houses (the
+run's split file; ``split="all"``: every view) and writes a new store with the same
+per-view arrays, so the evaluation reads predictions exactly like ground truth:
 
 - ``depth``: the depth net's D1..D5; with a segmentation net, D1/D2 (D3/D4) are NaN where
   it sees no object in layer 1 (3) — the paper's predicted masks;
 - ``category``: the segmentation net's NYU40 classes of layers 1 and 3 where the layer is
   set (0 elsewhere and for D5, which no net labels);
-- ``overhead_height``: the overhead height net's heights, NaN at or below
-  ``min_height`` above the floor (the floor; the paper keeps only pixels > 5 cm);
+- ``overhead_height``: the overhead height net's heights, NaN where the overhead
+  segmentation net sees background (the floor: the paper's test-time rule; ``floor=
+  "height"``: not) and at or below ``min_height`` above the floor (the paper evaluates
+  only pixels > 5 cm);
 - ``overhead_category``: the overhead segmentation net's classes;
 - cameras, ids and ``valid`` are copied from the source store, the overhead camera too
   unless a camera proposal run gives it (``camera_run``: the frontal camera's gravity
   frame at the true overhead camera height, centred on the predicted ``(tx, ty)``, of
   half-diagonal ``sigma``, as the paper does at test time);
-- what no net predicts (``instance``, ``overhead_depth``) holds the fill values; there
-  is no ``rgb``, ``normal`` or mesh.
+- what no net predicts (``instance``, ``overhead_depth``) holds the fill values, and so
+  does every view outside the split; there is no ``rgb``, ``normal`` or mesh.
+
+The store's ``prediction`` attribute records the run, the split and the indices of the
+views predicted (``views``), which are the only ones ``sceneforge evaluate`` scores.
 
 Which nets run depends on the run: a depth or segmentation run predicts its frontal
 outputs; an overhead run predicts everything (its config names its frozen depth and
@@ -34,9 +39,10 @@ import numpy as np
 import torch
 
 from ..errors import SceneforgeError
-from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
+from .dataset import BACKGROUND, CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers
+from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
 
@@ -60,6 +66,9 @@ class PredictSummary:
     predicted: int
     stages: tuple[str, ...]
     seconds: float
+    #: the split predicted, and the houses of it that the store holds
+    split: str = "all"
+    houses: int = 0
 
 
 def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tuple[int, int],
@@ -89,7 +98,18 @@ def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tup
     return np.array(poses), np.array(extents), np.array(out)
 
 
-def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool) -> dict:
+def overhead_heights(height: torch.Tensor, seg_logits: torch.Tensor, floor: str = "segmentation") -> torch.Tensor:
+    """Predicted heights (B, R, R) with the floor removed (NaN): where the overhead
+    segmentation logits (B, 40, R, R) say background (``floor="segmentation"``), and at or
+    below :data:`MIN_HEIGHT` in any case."""
+    keep = height > MIN_HEIGHT
+    if floor == "segmentation":
+        keep &= seg_logits.argmax(dim=1) != BACKGROUND
+    return torch.where(keep, height, torch.nan)
+
+
+def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool,
+                   floor: str = "segmentation") -> dict:
     """Every output of a batch as numpy arrays, keyed by store array name."""
     rgb = batch["rgb"]
     out: dict[str, np.ndarray] = {}
@@ -105,10 +125,9 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
         out.update(overhead_cam_to_world=pose, overhead_extent=extent, overhead_params=params)
     if eft is not None:
         x, layers, logits = overhead_input(nets, eft, batch)
-        height = nets["height"](x)[:, 0]
-        out["overhead_height"] = torch.where(height > MIN_HEIGHT, height, torch.nan).cpu().numpy()
-        top = nets["overhead_seg"](x).argmax(dim=1).cpu().numpy()
-        out["overhead_category"] = CLASS_TO_NYU40[top].astype(np.uint8)
+        top = nets["overhead_seg"](x)
+        out["overhead_height"] = overhead_heights(nets["height"](x)[:, 0], top, floor).cpu().numpy()
+        out["overhead_category"] = CLASS_TO_NYU40[top.argmax(dim=1).cpu().numpy()].astype(np.uint8)
     else:
         logits = nets["seg"](rgb).prediction if "seg" in nets else None
         layers = None
@@ -130,14 +149,18 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 
 
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
-            batch_size: int = 8, device: str = "auto", workers: int = 0, overwrite: bool = False,
-            progress=None) -> PredictSummary:
-    """Write the predictions of ``run`` for every view of ``store`` to a new store ``out``.
+            batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
+            floor: str = "segmentation",
+            device: str = "auto", workers: int = 0, overwrite: bool = False, progress=None) -> PredictSummary:
+    """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
 
     camera_run : a camera proposal run; the overhead cameras come from it instead of the store
+    split      : ``test``, ``val``, ``train`` (the houses of that split) or ``all`` (every view)
+    split_file : the split file (default: the one the run was trained with)
+    floor      : how the floor leaves the overhead heights (:func:`overhead_heights`)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
     Raises :class:`SceneforgeError` for a camera run given as RUN, an existing ``out``
-    without ``overwrite``, or a store without RGB images.
+    without ``overwrite``, a store without RGB images, or a split without views in ``store``.
     """
     import time
 
@@ -151,6 +174,14 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         config, nets, stages = _load_nets(run, camera_run, dev)
 
         index = index_stores([store])
+        houses = None
+        if split != "all":
+            chosen = read_split(split_file or config.split.file or default_split_file(config.stores))
+            houses = chosen.of(split)
+            index = index.subset(houses)
+            if not len(index):
+                raise SceneforgeError(f"{store} has no valid view of the {len(houses)} {split} houses of "
+                                      f"{chosen.path}: predict another split (--split all: every view)")
         valid = index.view
         source = open_store(store)
         eft = None
@@ -168,7 +199,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         with torch.no_grad():
             for batch in loader:
                 batch = {k: v.to(dev) for k, v in batch.items()}
-                outputs = _predict_batch(nets, eft, batch, camera_run is not None)
+                outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor)
                 for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
                     shards.add(int(i), {name: value[row] for name, value in outputs.items()})
                 shards.flush()
@@ -178,10 +209,12 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
         prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
                       "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                      "min_height": MIN_HEIGHT}
+                      "min_height": MIN_HEIGHT, "floor": floor, "split": split, "views": [int(i) for i in valid],
+                      "split_file": None if houses is None else str(chosen.path)}
         writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                         failures=source.attrs["failures"], prediction=prediction)
-    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0)
+    return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0, split,
+                          len(set(index.house)))
 
 
 def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device) -> tuple:

@@ -26,6 +26,7 @@ from .config import FROZEN, TrainConfig
 from .dataset import SEG_CLASSES
 from .eft import EpipolarFeatureTransformer, EpipolarGeometry, epipolar_geometry
 from .losses import camera_loss, depth_loss, height_loss, segmentation_loss
+from .metrics import DEPTH_METRICS, Metrics, depth_errors, height_error, segmentation_iou
 from .networks import (
     DEPTH_NET,
     OVERHEAD_NET,
@@ -61,15 +62,33 @@ class Stage(ABC):
     predicts_with: str | None = None
     #: whether it runs the Epipolar Feature Transformer (``config.eft``)
     uses_eft: bool = False
+    #: the validation metrics it logs beside the loss (:mod:`.metrics`)
+    val_metrics: tuple[str, ...] = ()
 
     @abstractmethod
     def build(self, config: TrainConfig, frontal: Nets) -> Nets:
         """The freshly initialised nets it trains; ``frontal``: the frozen nets of :attr:`frozen`."""
 
     @abstractmethod
+    def forward(self, config: TrainConfig, nets: Nets, frontal: Nets, eft: EpipolarFeatureTransformer | None,
+                batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The trained nets' outputs on a batch, by net name."""
+
+    @abstractmethod
+    def objective(self, config: TrainConfig, outputs: dict[str, Tensor], batch: dict[str, Tensor]
+                  ) -> tuple[Tensor, dict[str, float]]:
+        """The loss of :meth:`forward`'s outputs (a scalar with its graph) and its logged parts
+        (:attr:`loss_parts`)."""
+
+    def measure(self, config: TrainConfig, outputs: dict[str, Tensor], batch: dict[str, Tensor],
+                metrics: Metrics) -> None:
+        """Add a batch's :attr:`val_metrics` to ``metrics`` (default: none)."""
+        return None
+
     def loss(self, config: TrainConfig, nets: Nets, frontal: Nets, eft: EpipolarFeatureTransformer | None,
              batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         """The loss on a batch (a scalar with its graph) and its logged parts (:attr:`loss_parts`)."""
+        return self.objective(config, self.forward(config, nets, frontal, eft, batch), batch)
 
     def __repr__(self) -> str:
         return f"<{self.name} stage>"
@@ -84,24 +103,38 @@ class DepthStage(Stage):
     """The frontal depth net: D1..D5 from RGB (masked Huber loss, equation 1)."""
 
     name, fields, predicts = "depth", ("rgb", "depth"), ("depth",)
+    val_metrics = DEPTH_METRICS
 
     def build(self, config, frontal):
         return {"depth": FrontalDepthNet(_widths(config, DEPTH_NET))}
 
-    def loss(self, config, nets, frontal, eft, batch):
-        return depth_loss(nets["depth"](batch["rgb"]).prediction, batch["depth"], config.loss), {}
+    def forward(self, config, nets, frontal, eft, batch):
+        return {"depth": nets["depth"](batch["rgb"]).prediction}
+
+    def objective(self, config, outputs, batch):
+        return depth_loss(outputs["depth"], batch["depth"], config.loss), {}
+
+    def measure(self, config, outputs, batch, metrics):
+        depth_errors(outputs["depth"], batch["depth"], metrics)
 
 
 class SegStage(Stage):
     """The frontal segmentation net: the classes of layers 1 and 3 from RGB (cross-entropy)."""
 
     name, fields, predicts = "seg", ("rgb", "seg"), ("seg",)
+    val_metrics = ("seg_miou",)
 
     def build(self, config, frontal):
         return {"seg": FrontalSegNet(_widths(config, SEG_NET))}
 
-    def loss(self, config, nets, frontal, eft, batch):
-        return segmentation_loss(nets["seg"](batch["rgb"]).prediction, batch["seg"]), {}
+    def forward(self, config, nets, frontal, eft, batch):
+        return {"seg": nets["seg"](batch["rgb"]).prediction}
+
+    def objective(self, config, outputs, batch):
+        return segmentation_loss(outputs["seg"], batch["seg"], config.loss), {}
+
+    def measure(self, config, outputs, batch, metrics):
+        segmentation_iou(outputs["seg"], batch["seg"], metrics, "seg_miou")
 
 
 class OverheadStage(Stage):
@@ -113,6 +146,7 @@ class OverheadStage(Stage):
     loss_parts = ("height_l1", "seg_ce")
     predicts = ("depth", "seg", "overhead")
     uses_eft = True
+    val_metrics = ("height_l1_above_5cm", "overhead_seg_miou")
 
     def build(self, config, frontal):
         cin = EpipolarFeatureTransformer.out_channels(frontal["depth"].feature_channels,
@@ -120,11 +154,25 @@ class OverheadStage(Stage):
         return {"height": OverheadNet(cin, 1, _widths(config, OVERHEAD_NET)),
                 "overhead_seg": OverheadNet(cin, SEG_CLASSES, _widths(config, OVERHEAD_NET))}
 
-    def loss(self, config, nets, frontal, eft, batch):
+    def forward(self, config, nets, frontal, eft, batch):
         x, _, _ = overhead_input(frontal, eft, batch, config.eft_layers == "truth")
-        h = height_loss(nets["height"](x), batch["overhead_height"])
-        s = segmentation_loss(nets["overhead_seg"](x), batch["overhead_seg"])
+        return {"height": nets["height"](x), "overhead_seg": nets["overhead_seg"](x)}
+
+    def objective(self, config, outputs, batch):
+        h = overhead_height_loss(config, outputs["height"], batch)
+        s = segmentation_loss(outputs["overhead_seg"], batch["overhead_seg"], config.loss)
         return h + config.loss.overhead_seg_weight * s, {"height_l1": h.item(), "seg_ce": s.item()}
+
+    def measure(self, config, outputs, batch, metrics):
+        height_error(outputs["height"], batch["overhead_height"], metrics)
+        segmentation_iou(outputs["overhead_seg"], batch["overhead_seg"], metrics, "overhead_seg_miou")
+
+
+def overhead_height_loss(config: TrainConfig, pred: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    """The height loss of predicted heights (B, 1, R, R) on a batch's targets: the object
+    pixels only *(paper)*, or every pixel with a height (the floor as 0) with ``floor_as_zero``."""
+    supervised = None if config.floor_as_zero else batch["overhead_foreground"]
+    return height_loss(pred, batch["overhead_height"], supervised)
 
 
 class CameraStage(Stage):
@@ -139,10 +187,13 @@ class CameraStage(Stage):
         return {"camera": CameraProposalNet(depth.feature_channels, depth.config.channels[-1],
                                             _widths(config, CameraNetConfig()))}
 
-    def loss(self, config, nets, frontal, eft, batch):
+    def forward(self, config, nets, frontal, eft, batch):
         with torch.no_grad():
             out = frontal["depth"](batch["rgb"])
-        pred = nets["camera"](out.features, out.encoding)
+        return {"camera": nets["camera"](out.features, out.encoding)}
+
+    def objective(self, config, outputs, batch):
+        pred = outputs["camera"]
         return camera_loss(pred, batch["overhead_params"][:, [0, 1, 4]].to(pred.dtype)), {}
 
 

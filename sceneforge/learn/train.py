@@ -9,12 +9,16 @@ metrics, validation) are in :mod:`.trainer`.
 A run lives in one folder::
 
     RUN/config.json        the resolved TrainConfig (reload: TrainConfig.from_dict)
-    RUN/split.json         the houses (and view counts) of train / val / test
+    RUN/split.json         the houses (and view counts) of train / val / test, as read
+                           from the stores' split file (:mod:`.split`)
     RUN/checkpoint.pt      weights, optimiser and position; rewritten every
                            ``checkpoint_every`` steps and at the end of every epoch
-    RUN/metrics.csv        step, epoch, split, loss (+ its parts), lr, images/s, seconds
+    RUN/best.pt            the same, at the end of the epoch of the lowest validation loss
+    RUN/metrics.csv        step, epoch, split, loss (+ its parts; + the validation metrics
+                           of :mod:`.metrics` on val rows), lr, images/s, seconds
     RUN/loss_curve.png     train and validation loss against steps, drawn at the end
     RUN/tensorboard/       the same scalars, when TensorBoard is installed
+    RUN/wandb/             the same, with ``wandb=True`` (Weights & Biases, if installed)
 
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
 checkpoint with the same data order (a seeded permutation per epoch).
@@ -34,10 +38,12 @@ from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
-from .dataset import SPLITS, StoreDataset, ViewIndex, index_stores, split_houses
+from .dataset import StoreDataset, ViewIndex, index_stores
 from .eft import EpipolarFeatureTransformer
+from .split import SPLITS, default_split_file, fixed_split
 from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
 from .trainer import (
+    BEST,
     CHECKPOINT,
     Checkpoint,
     EpochLoop,
@@ -100,8 +106,19 @@ def frontal_nets(config: TrainConfig, device: torch.device | str = "cpu") -> dic
         frozen_config, loaded = load_run(run, device)
         if frozen_config.stage != stage:
             raise SceneforgeError(f"{run} is a {frozen_config.stage} run, not a {stage} run")
+        _check_same_split(config, frozen_config, run)
         nets[stage] = loaded[stage].requires_grad_(False)
     return nets
+
+
+def _check_same_split(config: TrainConfig, frozen: TrainConfig, run) -> None:
+    """A stage on the stores of its frozen run must use that run's split file: another split
+    would validate and test it on the frozen nets' training houses."""
+    ours, theirs = config.split.file, frozen.split.file
+    shared = {str(Path(s).resolve()) for s in config.stores} & {str(Path(s).resolve()) for s in frozen.stores}
+    if ours and theirs and shared and Path(ours).resolve() != Path(theirs).resolve():
+        raise SceneforgeError(f"{run} was trained on the split of {theirs}, this run splits the same stores by "
+                              f"{ours}: pass --split-file {theirs}")
 
 
 # --------------------------------------------------------------------------- running
@@ -155,9 +172,12 @@ def plot_loss_curve(run: str | Path) -> Path:
 
 
 def _absolute_runs(config: TrainConfig) -> TrainConfig:
-    """The frozen runs as absolute paths: found again from any working directory."""
+    """The frozen runs and the split file as absolute paths: found again from any working
+    directory (the split file's default, beside the first store, written out)."""
+    split_file = Path(config.split.file) if config.split.file is not None else default_split_file(config.stores)
     return replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
-                   seg_run=config.seg_run and str(Path(config.seg_run).resolve()))
+                   seg_run=config.seg_run and str(Path(config.seg_run).resolve()),
+                   split=replace(config.split, file=str(split_file.resolve())))
 
 
 def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
@@ -180,15 +200,16 @@ def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
 
 
 def _split(config: TrainConfig) -> tuple[ViewIndex, dict[str, ViewIndex], dict]:
-    """The stores' views split by house, and the record of the split for ``split.json``."""
+    """The stores' views split by house (the split saved for the stores, drawn and saved on
+    first use), and the record of the split for ``RUN/split.json``."""
     index = index_stores(config.stores)
-    houses = split_houses(index.house, config.split)
-    subsets = {s: index.subset(houses[s]) for s in SPLITS}
+    split = fixed_split(index.house, config.stores, config.split)
+    subsets = {s: index.subset(split.of(s)) for s in SPLITS}
     if not len(subsets["train"]):
         raise SceneforgeError(f"no training views: the split leaves {len(index)} views of "
                               f"{len(set(index.house))} houses to validation and test")
-    record = {"stores": list(config.stores), "seed": config.split.seed,
-              **{s: {"houses": houses[s], "views": len(subsets[s])} for s in SPLITS}}
+    record = {"stores": list(config.stores), "seed": config.split.seed, "file": config.split.file,
+              **{s: {"houses": sorted(split.of(s) & set(index.house)), "views": len(subsets[s])} for s in SPLITS}}
     return index, subsets, record
 
 
@@ -201,8 +222,8 @@ def _write_run_files(run: Path, config: TrainConfig, split_record: dict) -> None
 def _datasets(stage: Stage, config: TrainConfig, subsets: dict[str, ViewIndex]
               ) -> tuple[StoreDataset, StoreDataset | None]:
     """The training views and the validation views (None when there are none) as samples."""
-    train_set = StoreDataset(subsets["train"], stage.fields, config.floor_as_zero)
-    val_set = StoreDataset(subsets["val"], stage.fields, config.floor_as_zero) if len(subsets["val"]) else None
+    train_set = StoreDataset(subsets["train"], stage.fields)
+    val_set = StoreDataset(subsets["val"], stage.fields) if len(subsets["val"]) else None
     return train_set, val_set
 
 
@@ -220,6 +241,7 @@ def train(
     workers: int = 0,
     resume: bool = False,
     tensorboard: bool = True,
+    wandb: bool = False,
     progress: TrainProgress | None = None,
 ) -> TrainResult:
     """Train ``config.stage`` into the folder ``run`` (layout: module docstring).
@@ -227,6 +249,8 @@ def train(
     device  : ``auto`` (the GPU when present), ``cpu``, ``cuda``, ``cuda:1``, ...
     workers : DataLoader worker processes (0: read in this process)
     resume  : continue the run saved in ``run`` (same config; ``epochs``/``max_steps`` may grow)
+    wandb   : also log to Weights & Biases (project ``sceneforge``, the run folder's name);
+              needs the ``wandb`` package
     Raises :class:`SceneforgeError` for unusable stores, a missing frozen run, or a run
     folder that already holds a run (without ``resume``).
     """
@@ -248,10 +272,11 @@ def train(
     start = checkpoint.restore(trainer) if resume else Position()
     train_set, val_set = _datasets(stage, config, subsets)
     total = _total_steps(config, len(train_set))
-    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard)
+    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
+                     {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
     if progress:
         progress.start(total, start.step)
-    loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress)
+    loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress, Checkpoint(run / BEST))
     end = loop.run(start)
     log.close()
     plot_loss_curve(run)

@@ -3,11 +3,12 @@
 - :class:`Trainer`     — a stage's nets, their Adam optimiser and the frozen nets they read:
   one optimiser step on a batch, the mean loss over a dataset (validation)
 - :class:`Checkpoint`  — ``checkpoint.pt``: weights, optimiser and :class:`Position`,
-  replaced atomically, restored on resume
-- :class:`MetricsLog`  — ``metrics.csv`` and TensorBoard scalars
+  replaced atomically, restored on resume; ``best.pt`` the same at the lowest validation loss
+- :class:`MetricsLog`  — ``metrics.csv``, TensorBoard scalars and (optional) Weights & Biases
 - :class:`EpochLoop`   — the schedule: epochs of steps in a seeded order, a train row every
-  ``log_every`` steps, a checkpoint every ``checkpoint_every`` steps and at the end of every
-  epoch, validation after every whole epoch
+  ``log_every`` steps (images/s of the training steps alone, validation time left out), a
+  checkpoint every ``checkpoint_every`` steps and at the end of every epoch, validation
+  (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch
 """
 
 from __future__ import annotations
@@ -28,9 +29,12 @@ from ..errors import SceneforgeError
 from .config import TrainConfig
 from .dataset import StoreDataset
 from .eft import EpipolarFeatureTransformer
+from .metrics import Metrics
 from .stages import Nets, get_stage
 
 CHECKPOINT = "checkpoint.pt"
+#: the checkpoint of the lowest validation loss so far
+BEST = "best.pt"
 
 
 class TrainProgress(Protocol):
@@ -92,20 +96,23 @@ class Trainer:
         self.optimizer.step()
         return {"loss": loss.item(), **parts}
 
-    def validate(self, dataset: StoreDataset, workers: int = 0) -> float:
-        """Mean loss over a dataset, nets in eval mode (and back in training mode after)."""
+    def validate(self, dataset: StoreDataset, workers: int = 0) -> dict[str, float]:
+        """Mean loss (``loss``) and the stage's :attr:`~.stages.Stage.val_metrics` over a
+        dataset, nets in eval mode (and back in training mode after)."""
         for net in self.nets.values():
             net.eval()
-        total, n = 0.0, 0
+        total, n, metrics = 0.0, 0, Metrics()
         with torch.no_grad():
             for batch in _loader(dataset, self.config.batch_size, None, workers, self.device):
                 batch = _to(batch, self.device)
-                loss, _ = self.loss(batch)
+                outputs = self.stage.forward(self.config, self.nets, self.frontal, self.eft, batch)
+                loss, _ = self.stage.objective(self.config, outputs, batch)
+                self.stage.measure(self.config, outputs, batch, metrics)
                 total += loss.item() * len(batch["index"])
                 n += len(batch["index"])
         for net in self.nets.values():
             net.train()
-        return total / max(n, 1)
+        return {"loss": total / max(n, 1), **metrics.result()}
 
 
 @dataclass(frozen=True)
@@ -141,19 +148,33 @@ class Checkpoint:
 
 
 class MetricsLog:
-    """``metrics.csv`` (and TensorBoard scalars when it is installed)."""
+    """``metrics.csv`` (and TensorBoard scalars when it is installed, Weights & Biases when
+    asked for and installed: neither is a dependency).
 
-    def __init__(self, run: Path, parts: tuple[str, ...], resume_step: int | None, tensorboard: bool):
+    parts : the loss parts of train rows; metrics : the validation metrics of val rows
+    wandb : a dict of ``wandb.init`` arguments (project, name, config, ...); None: off
+    """
+
+    def __init__(self, run: Path, parts: tuple[str, ...], resume_step: int | None, tensorboard: bool,
+                 metrics: tuple[str, ...] = (), wandb: dict | None = None):
         self.path = run / "metrics.csv"
-        self.columns = ["step", "epoch", "split", "loss", *parts, "lr", "images_per_s", "seconds"]
+        self.columns = ["step", "epoch", "split", "loss", *parts, *metrics, "lr", "images_per_s", "seconds"]
         rows = []
         if resume_step is not None and self.path.exists():
             # rows logged after the checkpoint are redone by the resumed run
             rows = [r for r in read_metrics(self.path) if int(r["step"]) <= resume_step]
+        self.rows = rows
         with self.path.open("w", newline="") as f:
-            writer = csv.DictWriter(f, self.columns)
+            writer = csv.DictWriter(f, self.columns, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
+        self.wandb = None
+        if wandb is not None:
+            if importlib.util.find_spec("wandb") is None:
+                raise SceneforgeError("--wandb needs the wandb package: pip install wandb")
+            import wandb as wb
+
+            self.wandb = wb.init(dir=str(run), resume="allow", **wandb)
         self.tb = None
         if tensorboard and importlib.util.find_spec("tensorboard") is not None:
             from torch.utils.tensorboard import SummaryWriter
@@ -161,16 +182,26 @@ class MetricsLog:
             self.tb = SummaryWriter(str(run / "tensorboard"))
 
     def write(self, row: dict) -> None:
+        self.rows.append(row)
         with self.path.open("a", newline="") as f:
             csv.DictWriter(f, self.columns).writerow(row)
+        scalars = {key: float(row[key]) for key in self.columns[3:] if row.get(key) not in (None, "")}
         if self.tb is not None:
-            for key in self.columns[3:]:
-                if row.get(key) not in (None, ""):
-                    self.tb.add_scalar(f"{row['split']}/{key}", float(row[key]), int(row["step"]))
+            for key, value in scalars.items():
+                self.tb.add_scalar(f"{row['split']}/{key}", value, int(row["step"]))
+        if self.wandb is not None:
+            self.wandb.log({f"{row['split']}/{k}": v for k, v in scalars.items()}, step=int(row["step"]))
+
+    def best_val_loss(self) -> float:
+        """The lowest validation loss logged (inf: none)."""
+        losses = [float(r["loss"]) for r in self.rows if r["split"] == "val"]
+        return min(losses, default=math.inf)
 
     def close(self) -> None:
         if self.tb is not None:
             self.tb.close()
+        if self.wandb is not None:
+            self.wandb.finish()
 
 
 def read_metrics(path: str | Path) -> list[dict]:
@@ -198,6 +229,7 @@ class _TrainWindow:
 
     def __init__(self):
         self.started, self.images, self.sums, self.count = time.perf_counter(), 0, {}, 0
+        self.paused = 0.0  # seconds spent on anything but training steps (validation)
 
     def add(self, images: int, losses: dict[str, float]) -> None:
         self.images += images
@@ -206,7 +238,7 @@ class _TrainWindow:
         self.count += 1
 
     def images_per_s(self) -> float:
-        return self.images / max(time.perf_counter() - self.started, 1e-9)
+        return self.images / max(time.perf_counter() - self.started - self.paused, 1e-9)
 
     def means(self) -> dict[str, float]:
         return {k: v / self.count for k, v in self.sums.items()}
@@ -214,15 +246,20 @@ class _TrainWindow:
 
 class EpochLoop:
     """Steps a :class:`Trainer` from a :class:`Position` to ``total`` steps (or the last epoch),
-    writing the metrics and checkpoints on the way (schedule: module docstring). After
-    :meth:`run`, ``train_loss``/``val_loss`` are the last logged ones (NaN: none) and
-    ``images_per_s`` the rate of the last train row."""
+    writing the metrics and checkpoints on the way (schedule: module docstring); after a
+    validation with a lower loss than any before, the checkpoint is also saved as ``best``
+    (None: not kept). After :meth:`run`, ``train_loss``/``val_loss`` are the last logged
+    ones (NaN: none), ``val_metrics`` the last validation's, and ``images_per_s`` the rate
+    of the last train row."""
 
     def __init__(self, trainer: Trainer, train_set: StoreDataset, val_set: StoreDataset | None, total: int,
-                 log: MetricsLog, checkpoint: Checkpoint, workers: int = 0, progress: TrainProgress | None = None):
+                 log: MetricsLog, checkpoint: Checkpoint, workers: int = 0, progress: TrainProgress | None = None,
+                 best: Checkpoint | None = None):
         self.trainer, self.config = trainer, trainer.config
         self.train_set, self.val_set, self.total = train_set, val_set, total
         self.log, self.checkpoint, self.workers, self.progress = log, checkpoint, workers, progress
+        self.best, self.best_loss = best, log.best_val_loss()
+        self.val_metrics: dict[str, float] = {}
         self.per_epoch = math.ceil(len(train_set) / self.config.batch_size)
         self.train_loss = self.val_loss = float("nan")
         self.images_per_s = 0.0
@@ -235,9 +272,10 @@ class EpochLoop:
             at = self._epoch(at)
             if at.batch >= self.per_epoch:
                 at = Position(at.step, at.epoch + 1, 0)
-            if self.val_set is not None and at.batch == 0:
-                self._validate(at)
+            improved = self.val_set is not None and at.batch == 0 and self._validate(at)
             self.checkpoint.save(self.trainer, at)
+            if improved and self.best is not None:
+                self.best.save(self.trainer, at)
         return at
 
     def _epoch(self, at: Position) -> Position:
@@ -267,11 +305,17 @@ class EpochLoop:
                         "images_per_s": round(self.images_per_s, 3), "seconds": self._seconds()})
         self._window = _TrainWindow()
 
-    def _validate(self, at: Position) -> None:
-        """Validation after epoch ``at.epoch - 1``."""
-        self.val_loss = self.trainer.validate(self.val_set, self.workers)
-        self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", "loss": self.val_loss,
+    def _validate(self, at: Position) -> bool:
+        """Validation after epoch ``at.epoch - 1``; whether its loss is the lowest so far."""
+        started = time.perf_counter()
+        self.val_metrics = self.trainer.validate(self.val_set, self.workers)
+        self.val_loss = self.val_metrics["loss"]
+        self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", **self.val_metrics,
                         "lr": self.config.lr, "seconds": self._seconds()})
+        self._window.paused += time.perf_counter() - started
+        improved = self.val_loss < self.best_loss
+        self.best_loss = min(self.best_loss, self.val_loss)
+        return improved
 
     def _seconds(self) -> float:
         return round(time.perf_counter() - self.started, 3)
