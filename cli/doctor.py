@@ -14,8 +14,7 @@ from sceneforge.errors import EXIT_FAILURES
 
 #: (import name, distribution name, what needs it, how to install it)
 PACKAGES = (
-    ("embreex", "embreex", "first-hit ray tracing", "pip install 'sceneforge[trace]'"),
-    ("open3d", "open3d", "all-hit ray tracing", "pip install 'sceneforge[trace]'"),
+    ("open3d", "open3d", "ray tracing where the Embree extension is not built", "pip install 'sceneforge[trace]'"),
     ("zarr", "zarr", "the store", "pip install 'sceneforge[store]'"),
     ("torch", "torch", "the models", "pip install torch==2.13.0 'sceneforge[learn]'"),
     ("pyrender", "pyrender", "RGB rendering", "pip install 'sceneforge[render]'"),
@@ -48,6 +47,17 @@ def check_package(module: str, dist: str, needed_for: str, install: str) -> Chec
     except metadata.PackageNotFoundError:
         version = getattr(imported, "__version__", "unknown version")
     return Check("PASS", dist, version)
+
+
+def check_tracer() -> Check:
+    """Which engine traces the layers: sceneforge's Embree extension, else Open3D."""
+    from sceneforge.raytrace import default_backend
+
+    if default_backend() == "embree":
+        return Check("PASS", "ray tracing", "embree (sceneforge's all-hit extension)")
+    return Check("WARN", "ray tracing", "open3d: the Embree extension is not built (same layers, slower)",
+                 "install a C++ compiler and Embree's headers (apt-get install g++ libembree-dev), then "
+                 "`pip install -e .` again")
 
 
 def check_cuda() -> Check:
@@ -110,13 +120,15 @@ def check_rendering(gpu: int | None) -> list[Check]:
 @click.option("--gpu", type=click.IntRange(min=0), default=None,
               help="EGL device to render on. Default: $EGL_DEVICE_ID, else the first GPU, else Mesa's software device.")
 def doctor(gpu):
-    """Check the installation: versions of the optional packages, torch's CUDA, the EGL
+    """Check the installation: versions of the optional packages, the ray-tracing engine,
+    torch's CUDA, the EGL
     devices and OpenGL driver, and one rendered frame of a bundled toy house. Prints one
     PASS, WARN or FAIL line per check (with what to install for each FAIL) and exits with
     status 3 when a check failed.
     """
     checks = [Check("PASS", "python", platform.python_version())]
     checks += [check_package(*package) for package in PACKAGES]
+    checks.append(check_tracer())
     checks.append(check_cuda())
     checks += check_rendering(gpu)
     colours = {"PASS": "green", "WARN": "yellow", "FAIL": "red"}

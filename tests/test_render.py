@@ -356,6 +356,6 @@ def test_broken_egl_is_one_line_naming_what_to_install(broken, needs, tmp_path):
 def test_doctor_passes_here():
     res = CliRunner().invoke(doctor, [])
     assert res.exit_code == 0, res.output
-    for check in ("EGL devices", "OpenGL on EGL device", "one-frame render", "embreex", "open3d", "zarr", "torch"):
+    for check in ("EGL devices", "OpenGL on EGL device", "one-frame render", "ray tracing", "open3d", "zarr", "torch"):
         assert any(line.startswith("PASS") and check in line for line in res.output.splitlines()), check
     assert "torch CUDA" in res.output
