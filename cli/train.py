@@ -141,6 +141,6 @@ def predict(run, store, out, config, device, workers, overwrite):
                                  split=config.split, split_file=config.split_file, floor=config.floor_removal,
                                  device=device, workers=workers,
                                  overwrite=overwrite, progress=RichProgress(bar))
-    console.print(f"split: {summary.split} ({summary.predicted} views of {summary.houses} houses)")
+    console.print(f"split: {summary.split} ({plural(summary.predicted, 'view')} of {plural(summary.houses, 'house')})")
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "
                   f"({', '.join(summary.stages)}) in {summary.seconds:.1f} s")

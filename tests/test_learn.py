@@ -588,7 +588,7 @@ def test_stages_share_the_split_and_predict_and_evaluate_use_its_test_houses(sto
     out = str(tmp_path / "p.zarr")
     result = CliRunner().invoke(cli, ["predict", str(a.run), store, out, "--device", "cpu"])
     assert result.exit_code == 0, result.output
-    assert "split: test (2 views of 1 houses)" in result.output
+    assert "split: test (2 views of 1 house)" in result.output
     pred = open_store(out)
     predicted = pred.attrs["prediction"]["views"]
     assert len(predicted) == 2 and {str(pred.array("house_id")[i]) for i in predicted} == test_houses
@@ -598,7 +598,7 @@ def test_stages_share_the_split_and_predict_and_evaluate_use_its_test_houses(sto
                                       "--plot", str(tmp_path / "p.png")])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert lines[0] == "split: test (2 views of 1 houses)"
+    assert lines[0] == "split: test (2 views of 1 house)"
     result = CliRunner().invoke(cli, ["evaluate", "predictions", out, store, "--split", "train", "--density", "200",
                                       "--plot", str(tmp_path / "p.png")])
     assert result.exit_code == 1 and "no predicted view of the train split" in result.output
