@@ -144,7 +144,7 @@ class _Builder:
         category = resolve(self.house, label, category, strict=self.options.strict, file=self.path)
         v = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3) @ self.to_world.T
         make_instance(self.house, name=clean, category=category, label=label, room_id=None,
-                      vertices=v, faces=mesh.faces, file=self.path, material=mesh.material, uv=mesh.uv)
+                      vertices=v, faces=mesh.faces, file=self.path, uv=mesh.uv, **mesh.instance_args())
 
 
 def _load(source: HouseSource, options: LoadOptions) -> House:
