@@ -290,6 +290,18 @@ def _gl() -> SimpleNamespace:
             super().__init__(width, height)
             self.samples = samples
             self._program_cache = ShaderCache(mesh_shader)
+            self._lit: dict = {}  # program → (scene, mesh node) whose lights it has
+
+        def _bind_lighting(self, scene, program, node, flags):
+            # Light uniforms depend on the scene and the mesh node only, and stay set in a
+            # program: pyrender sets them again for every primitive of every frame, which is
+            # most of a frame's time in Python. Shadow maps take texture units per primitive.
+            shadows = flags & (pyrender.RenderFlags.SHADOWS_SPOT | pyrender.RenderFlags.SHADOWS_DIRECTIONAL)
+            key = (scene, node)
+            if not shadows and self._lit.get(program) == key:
+                return
+            super()._bind_lighting(scene, program, node, flags)
+            self._lit[program] = None if shadows else key
 
         def _compute_max_n_lights(self, flags):
             # pyrender's 4 lights per kind are a texture-unit budget for shadow maps only
@@ -524,6 +536,7 @@ class Renderer:
             # pyrender frees the GL objects of whatever its context holds that a scene lacks
             self._gl._update_context(pyrender.Scene(), pyrender.RenderFlags.NONE)
         self._scene = self._house = None
+        self._gl._lit.clear()
         ambient = float(self.config.ambient)
         scene = gl.Scene(bg_color=(*self.config.background, 1.0), ambient_light=(ambient,) * 3)
         textures: dict[tuple, object] = {}
