@@ -32,7 +32,7 @@ import numpy as np
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
 from sceneforge.raytrace import HouseTracer
-from sceneforge.render import open_renderer
+from sceneforge.render import RenderConfig, open_renderer
 
 BREAKFAST = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
 WIDTH, HEIGHT = 320, 240
@@ -87,9 +87,11 @@ def scenes_and_cameras(views: int):
 
 def time_mode(mode: str, scenes, repeats: int, samples: int) -> list[tuple[float, float]]:
     """Per scene: (ms per frame with its scene built, best of ``repeats`` passes over its views;
-    ms of the first frame, scene build included)."""
+    ms of the first frame, scene build included). Mode ``raster+shadows``: raster with the
+    window lights' shadow maps."""
     out = []
-    with open_renderer(mode, WIDTH, HEIGHT, samples=samples) as r:
+    config = RenderConfig(shadows=mode.endswith("+shadows"))
+    with open_renderer(mode.removesuffix("+shadows"), WIDTH, HEIGHT, samples=samples, config=config) as r:
         for _, house, cameras in scenes:
             start = time.perf_counter()
             r.render(house, cameras[0])
@@ -157,7 +159,8 @@ def main():
     parser.add_argument("--samples", type=int, default=64, help="path tracing: samples per pixel")
     parser.add_argument("--frames", type=int, default=500, help="frames of the raster memory run")
     parser.add_argument("--pt-frames", type=int, default=20, help="frames of the path-tracing memory run")
-    parser.add_argument("--modes", default="raster,pathtraced", help="modes to measure, comma-separated")
+    parser.add_argument("--modes", default="raster,raster+shadows,pathtraced",
+                        help="modes to measure, comma-separated (raster+shadows: timing only)")
     parser.add_argument("--figure", type=Path, default=None, help="also write the side-by-side figure here")
     args = parser.parse_args()
     modes = args.modes.split(",")
@@ -173,14 +176,15 @@ def main():
 
     times = {mode: time_mode(mode, scenes, args.repeats if mode == "raster" else 1, args.samples) for mode in modes}
     print(f"\n{WIDTH}×{HEIGHT}, ms per frame (first frame of a scene, build included, in brackets)")
-    print(f"{'scene':<22}" + "".join(f"{m:>26}" for m in modes) + ("   pathtraced / raster" if len(modes) > 1 else ""))
+    others = [m for m in modes if m != "raster"] if "raster" in modes else []
+    print(f"{'scene':<22}" + "".join(f"{m:>26}" for m in modes) + "".join(f"{m + ' / raster':>26}" for m in others))
     for k, (name, _, _) in enumerate(scenes):
         cells = "".join(f"{times[m][k][0]:>14.1f} ({times[m][k][1]:>8.0f})" for m in modes)
-        ratio = f"   {times['pathtraced'][k][0] / times['raster'][k][0]:>10.0f}×" if len(modes) > 1 else ""
-        print(f"{name:<22}{cells}{ratio}")
+        ratios = "".join(f"{times[m][k][0] / times['raster'][k][0]:>25.1f}×" for m in others)
+        print(f"{name:<22}{cells}{ratios}")
 
     print("\nresident memory of one renderer (a worker's), a new scene every 2 frames, after malloc_trim")
-    for mode in modes:
+    for mode in (m for m in modes if not m.endswith("+shadows")):
         frames = args.frames if mode == "raster" else args.pt_frames
         ks, rss = memory_run(mode, scenes, frames, args.samples)
         slope = np.polyfit(ks, rss, 1)[0] * 100 if len(ks) > 1 else 0.0

@@ -93,3 +93,21 @@ def test_non_square_pixels_are_a_one_line_error(mi):
 def test_unknown_mode_is_refused():
     with pytest.raises(ValueError, match="unknown RGB mode 'photo'; expected one of raster, pathtraced"):
         open_renderer("photo", 8, 8)
+
+
+def test_store_records_the_rgb_mode(mi, tmp_path):
+    """``render --rgb pathtraced`` writes path-traced RGB, and the store's saved config says so."""
+    from click.testing import CliRunner
+    from sceneforge.cli.main import cli
+
+    from sceneforge.store import open_store
+
+    out = tmp_path / "pt.zarr"
+    res = CliRunner().invoke(cli, ["render", "bundled:toy", str(out), "--resolution", "32x24", "--views-per-house", "1",
+                                   "--overhead-resolution", "16", "--rgb", "pathtraced", "--rgb-samples", "2"])
+    assert res.exit_code == 0, res.output
+    store = open_store(str(out))
+    assert store.attrs["config"]["rgb"] | {"lighting": None} == {
+        "enabled": True, "mode": "pathtraced", "antialias": False, "samples": 2, "lighting": None}
+    assert store.config.rgb.mode == "pathtraced"
+    assert np.asarray(store.view(0)["rgb"]).std() > 5

@@ -23,7 +23,9 @@ irradiance × :data:`EXPOSURE`; the ambient term is not added (indirect light st
 Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces.
 
 Determinism. A fixed sample count and seed give the same image on the same machine and
-variant: each render pass takes one sample per pixel (seed ``seed + k`` in pass ``k``) and
+variant: the view's seed is the renderer's seed mixed with a CRC of the camera (so views
+do not share one noise pattern, and the same view always gets the same one), each render
+pass takes one sample per pixel (the view's seed + ``k`` in pass ``k``) and
 the passes are averaged in numpy in pass order, so no two samples ever race to add into
 one pixel. Across CPUs (LLVM) and GPUs (CUDA) results differ by floating-point rounding.
 
@@ -37,6 +39,7 @@ import functools
 import glob
 import os
 import re
+import zlib
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -144,7 +147,7 @@ class PathTracer:
     width, height : image size in pixels; every camera must have it
     config        : lights (as the raster mode's) and background
     samples       : samples per pixel (None: :data:`DEFAULT_SAMPLES`)
-    seed          : seed of the first pass's sampler
+    seed          : the renderer's seed (module docs)
 
     Keeps the Mitsuba scene of the last house it rendered (compared by identity).
     """
@@ -191,9 +194,10 @@ class PathTracer:
                      "rfilter": {"type": "box"}},
             "sampler": {"type": "independent", "sample_count": 1},
         })
+        view_seed = (self.seed * 1_000_003 + zlib.crc32(camera.K.tobytes() + camera.cam_to_world.tobytes())) % 2 ** 31
         total = np.zeros((self.height, self.width, 3))
         for k in range(self.samples):
-            image = mi.render(self._scene, sensor=sensor, spp=1, seed=self.seed + k)
+            image = mi.render(self._scene, sensor=sensor, spp=1, seed=view_seed + k)
             total += np.asarray(image, dtype=np.float64)[..., :3]
         out = total / self.samples
         nothing = srgb_to_linear(np.asarray(self.config.background))

@@ -306,8 +306,8 @@ def _gl() -> SimpleNamespace:
         def _compute_max_n_lights(self, flags):
             # pyrender's 4 lights per kind are a texture-unit budget for shadow maps only
             counts = super()._compute_max_n_lights(flags)
-            return [counts[0], MAX_LIGHTS if flags & pyrender.RenderFlags.SHADOWS_SPOT == 0 else counts[1],
-                    MAX_LIGHTS]
+            spot_shadows = flags & pyrender.RenderFlags.SHADOWS_SPOT
+            return [counts[0], counts[1] if spot_shadows else MAX_LIGHTS, MAX_LIGHTS]
 
         def _configure_main_framebuffer(self):
             fresh = self._main_fb_dims != (self.viewport_width, self.viewport_height)
