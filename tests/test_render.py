@@ -321,6 +321,21 @@ def test_per_pixel_light_is_lambert_over_distance_squared_from_either_side():
         assert np.abs(rgb[seen][:, 0] - expected).max() <= 2.0, flip
 
 
+def test_a_room_is_lit_by_its_own_lights_only():
+    """A lamp of another room, even one standing inside this room's bounds (behind the
+    camera), changes no pixel: a room's geometry sees only its own room's lights."""
+    house = boxed_room()
+    camera = look_at_camera([0, 1.5, -1.0], [0.1, -0.2, 1.0], width=64, height=48)
+    with Renderer(64, 48) as r:
+        before = r.render(house, camera)
+    box_instance(house, "other room's lamp", 35, (0.2, 0.2, 0.2), (0.0, 1.5, -1.8), room_id="r1")
+    assert [light.room for light in house_lights(house, RenderConfig())] == ["r0", "r1"]
+    with Renderer(64, 48) as r:  # a renderer keeps the scene of a house it has seen
+        after = r.render(house, camera)
+    assert camera.project([[0.0, 1.5, -1.8]])[1][0] <= 0  # behind the camera: not in the image
+    np.testing.assert_array_equal(after, before)
+
+
 def test_batches_group_faces_by_room_and_material():
     house, box, _ = two_material_box()
     batches = house_batches(house)

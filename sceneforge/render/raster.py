@@ -25,9 +25,9 @@ an ambient term. The shader is pyrender's own with four changes made when it is 
 path tracer shades them so too), a face seen from behind is shaded with its normal turned to the
 viewer (faces have no consistent winding in real houses), no light is nearer than
 ``light_min_distance``, and the output is exactly sRGB-encoded (pyrender uses γ = 2.2).
-A room's geometry is one pyrender mesh placed at the room's centre, so pyrender gives it
-the :data:`MAX_LIGHTS` lights nearest that centre (its own lights, in practice); light
-from another room reaches it only through surfaces that face that room.
+A room's geometry is one pyrender mesh lit by that room's lights only (up to
+:data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
+walls, and every fragment evaluates only its room's few lights.
 Shadows (``RenderConfig.shadows``) come from shadow maps of the spot lights (windows);
 point lights cast none (pyrender has no point-light shadows).
 
@@ -300,7 +300,7 @@ def _gl() -> SimpleNamespace:
             key = (scene, node)
             if not shadows and self._lit.get(program) == key:
                 return
-            super()._bind_lighting(scene, program, node, flags)
+            super()._bind_lighting(RoomLights(scene, node), program, node, flags)
             self._lit[program] = None if shadows else key
 
         def _compute_max_n_lights(self, flags):
@@ -343,6 +343,24 @@ def _gl() -> SimpleNamespace:
         @property
         def light_nodes(self):
             return sorted(super().light_nodes, key=lambda n: n.name)
+
+        #: the light nodes of each room's mesh node (by node name), in name order
+        room_lights: dict
+
+    class RoomLights:
+        """The scene as pyrender's lighting code sees it for one room's mesh node: only the
+        lights of that room (``Scene.room_lights``), in name order. Every fragment then
+        evaluates its own room's few lights, not every light up to :data:`MAX_LIGHTS`."""
+
+        def __init__(self, scene, node):
+            self._scene = scene
+            self.light_nodes = scene.room_lights.get(node.name, [])
+            self.point_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.PointLight)]
+            self.spot_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.SpotLight)]
+            self.directional_light_nodes = []
+
+        def __getattr__(self, name):  # ambient_light, get_pose, main_camera_node, centroid, scale
+            return getattr(self._scene, name)
 
     class IntrinsicsCamera(pyrender.IntrinsicsCamera):
         """pyrender's intrinsics camera plus the skew of ``K``."""
@@ -559,11 +577,15 @@ class Renderer:
             primitive = pyrender.Primitive(positions=batch.positions, normals=batch.normals, color_0=batch.colors,
                                            texcoord_0=batch.uv, material=look)
             rooms.setdefault(batch.room, (batch.origin, []))[1].append(primitive)
-        for k, (origin, primitives) in enumerate(rooms.values()):
-            scene.add(pyrender.Mesh(primitives=primitives), name=f"room{k:06d}", pose=_translation(origin))
+        mesh_of_room = {}
+        for k, (room, (origin, primitives)) in enumerate(rooms.items()):
+            mesh_of_room[room] = f"room{k:06d}"
+            scene.add(pyrender.Mesh(primitives=primitives), name=mesh_of_room[room], pose=_translation(origin))
+        scene.room_lights = {name: [] for name in mesh_of_room.values()}
         for k, light in enumerate(house_lights(house, self.config)):
             node, pose = _pyrender_light(pyrender, light)
-            scene.add(node, name=f"light{k:06d}", pose=pose)
+            if light.room in mesh_of_room:
+                scene.room_lights[mesh_of_room[light.room]].append(scene.add(node, name=f"light{k:06d}", pose=pose))
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
         self._scene, self._house = scene, house
 
