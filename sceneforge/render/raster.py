@@ -587,6 +587,9 @@ class Renderer:
             if light.room in mesh_of_room:
                 scene.room_lights[mesh_of_room[light.room]].append(scene.add(node, name=f"light{k:06d}", pose=pose))
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
+        # shadow maps frame the scene's bounds; pyrender's own computation uses np.infty,
+        # which NumPy 2 removed
+        scene._bounds = house.bounds()
         self._scene, self._house = scene, house
 
 
