@@ -278,12 +278,15 @@ def test_lamps_replace_the_fallback_and_windows_shine_inwards():
     house = boxed_room()
     config = RenderConfig(light=0.4, window_light=0.2)
     assert [light.source for light in house_lights(house, config)] == ["fallback"]
-    lamp = box_instance(house, "lamp", 35, (0.2, 0.4, 0.2), (1.0, 2.0, 1.0))
+    lamp = box_instance(house, "lamp", 35, (0.2, 1.6, 0.2), (1.0, 0.8, 1.0))  # a floor lamp
     window = make_instance(house, name="window", category=9, label="window", room_id=lamp.room_id,
                            vertices=[[-2, 1, -1], [-2, 2, -1], [-2, 2, 1], [-2, 1, 1]], faces=[[0, 1, 2], [0, 2, 3]])
     lights = house_lights(house, config)
     assert [light.source for light in lights] == ["lamp", "window"]
-    np.testing.assert_allclose(lights[0].position, 0.5 * (lamp.vertices.min(0) + lamp.vertices.max(0)))
+    np.testing.assert_allclose(lights[0].position, [1.0, 1.6 + 0.05, 1.0])  # a standing lamp: above its top
+    hanging = box_instance(house, "pendant", 35, (0.3, 0.2, 0.3), (-1.0, 2.7, 0.0))
+    np.testing.assert_allclose(house_lights(house, config)[1].position, [-1.0, 2.6 - 0.05, 0.0])  # below it
+    house.instances.remove(hanging)
     np.testing.assert_allclose(lights[1].position, [-2, 1.5, 0])
     assert lights[1].direction[0] > 0 and lights[1].direction[1] < 0  # into the room, downwards
     assert window.envelope

@@ -3,7 +3,9 @@
 Every room (``Instance.room_id``; None groups the instances of no room) gets:
 
 - one **point light per lamp** (NYU40 ``lamp``, or a label naming a lamp, light or
-  chandelier) at the centre of the lamp's bounds;
+  chandelier), outside its shade, where the light comes out: :data:`LAMP_GAP` below the
+  bottom centre of a hanging lamp (one whose bottom is above the middle of its room's
+  height), :data:`LAMP_GAP` above the top centre of a standing one (floor and table lamps);
 - one **spot light per window** (NYU40 ``window``): at the window's centre, pointing into
   the room (from the window towards the centre of the room's bounds, kept horizontal and
   tilted 30° down), a wide cone standing in for the sky light a window lets in;
@@ -33,6 +35,9 @@ if TYPE_CHECKING:
 
 #: labels (the source's own class names) of lights that are not NYU40 ``lamp``
 LAMP_LABEL = re.compile(r"lamp|light|chandelier|sconce", re.IGNORECASE)
+#: a lamp's light is this far outside its bounds, metres (inside, its shade would hide it
+#: from the path tracer)
+LAMP_GAP = 0.05
 #: half-angle of a window's cone of light, radians
 WINDOW_CONE = np.radians(70.0)
 #: a window's light points this far below horizontal, radians
@@ -87,8 +92,11 @@ def house_lights(house: "House", config: "RenderConfig") -> list[Light]:
     for room, bounds in room_bounds(house).items():
         members = [i for i in house.instances if i.room_id == room]
         lamps = [i for i in members if is_lamp(i) and not i.envelope]
+        middle = 0.5 * (bounds[0, 1] + bounds[1, 1])
         for inst in lamps:
-            position = 0.5 * (inst.vertices.min(0) + inst.vertices.max(0))
+            lo, hi = inst.vertices.min(0), inst.vertices.max(0)
+            position = 0.5 * (lo + hi)
+            position[1] = lo[1] - LAMP_GAP if lo[1] > middle else hi[1] + LAMP_GAP
             out.append(Light("point", room, position, None,
                              config.light / len(lamps) * _reach2(bounds, position, config.light_min_distance),
                              "lamp"))
