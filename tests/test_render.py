@@ -283,9 +283,9 @@ def test_lamps_replace_the_fallback_and_windows_shine_inwards():
                            vertices=[[-2, 1, -1], [-2, 2, -1], [-2, 2, 1], [-2, 1, 1]], faces=[[0, 1, 2], [0, 2, 3]])
     lights = house_lights(house, config)
     assert [light.source for light in lights] == ["lamp", "window"]
-    np.testing.assert_allclose(lights[0].position, [1.0, 1.6 + 0.05, 1.0])  # a standing lamp: above its top
+    np.testing.assert_allclose(lights[0].position, [1.0, 1.6 + 0.3, 1.0])  # a standing lamp: above its top
     hanging = box_instance(house, "pendant", 35, (0.3, 0.2, 0.3), (-1.0, 2.7, 0.0))
-    np.testing.assert_allclose(house_lights(house, config)[1].position, [-1.0, 2.6 - 0.05, 0.0])  # below it
+    np.testing.assert_allclose(house_lights(house, config)[1].position, [-1.0, 2.6 - 0.3, 0.0])  # below it
     house.instances.remove(hanging)
     np.testing.assert_allclose(lights[1].position, [-2, 1.5, 0])
     assert lights[1].direction[0] > 0 and lights[1].direction[1] < 0  # into the room, downwards

@@ -3,9 +3,11 @@
 Every room (``Instance.room_id``; None groups the instances of no room) gets:
 
 - one **point light per lamp** (NYU40 ``lamp``, or a label naming a lamp, light or
-  chandelier), outside its shade, where the light comes out: :data:`LAMP_GAP` below the
-  bottom centre of a hanging lamp (one whose bottom is above the middle of its room's
-  height), :data:`LAMP_GAP` above the top centre of a standing one (floor and table lamps);
+  chandelier), outside its shade, where the light comes out: ``light_min_distance`` below
+  the bottom centre of a hanging lamp (one whose bottom is above the middle of its room's
+  height), as far above the top centre of a standing one (floor and table lamps) (inside,
+  the shade would hide it from the path tracer; nearer, the shade's light would swamp the
+  path tracer's samples);
 - one **spot light per window** (NYU40 ``window``): at the window's centre, pointing into
   the room (from the window towards the centre of the room's bounds, kept horizontal and
   tilted 30° down), a wide cone standing in for the sky light a window lets in;
@@ -35,9 +37,6 @@ if TYPE_CHECKING:
 
 #: labels (the source's own class names) of lights that are not NYU40 ``lamp``
 LAMP_LABEL = re.compile(r"lamp|light|chandelier|sconce", re.IGNORECASE)
-#: a lamp's light is this far outside its bounds, metres (inside, its shade would hide it
-#: from the path tracer)
-LAMP_GAP = 0.05
 #: half-angle of a window's cone of light, radians
 WINDOW_CONE = np.radians(70.0)
 #: a window's light points this far below horizontal, radians
@@ -96,7 +95,8 @@ def house_lights(house: "House", config: "RenderConfig") -> list[Light]:
         for inst in lamps:
             lo, hi = inst.vertices.min(0), inst.vertices.max(0)
             position = 0.5 * (lo + hi)
-            position[1] = lo[1] - LAMP_GAP if lo[1] > middle else hi[1] + LAMP_GAP
+            gap = config.light_min_distance
+            position[1] = lo[1] - gap if lo[1] > middle else hi[1] + gap
             out.append(Light("point", room, position, None,
                              config.light / len(lamps) * _reach2(bounds, position, config.light_min_distance),
                              "lamp"))
