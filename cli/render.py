@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -14,6 +15,24 @@ from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_op
 from .output import atomic_output, check_output, plural
 from .progress import RichProgress, progress_bar
 
+
+class RGBMode(click.Choice):
+    """``raster``, ``pathtraced`` or ``none`` → (``rgb.mode``, ``rgb.enabled``)."""
+
+    def __init__(self):
+        super().__init__(["raster", "pathtraced", "none"])
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        mode = super().convert(value, param, ctx)
+        return ("raster", False) if mode == "none" else (mode, True)
+
+    @staticmethod
+    def show(values) -> str:
+        return values[0] if values[1] else "none"
+
+
 #: the options of ``render`` and the config fields they set (help and defaults: the fields')
 RENDER_OPTIONS = (
     *HOUSE_OPTIONS,
@@ -23,7 +42,8 @@ RENDER_OPTIONS = (
     ConfigOption("--resolution", ("width", "height"), type=Size(), metavar="WxH"),
     ConfigOption("--overhead-resolution", "view.overhead.resolution", type=click.IntRange(min=1)),
     ConfigOption("--seed", "seed"),
-    ConfigOption("--rgb/--no-rgb", "rgb.enabled"),
+    ConfigOption("--rgb", ("rgb.mode", "rgb.enabled"), type=RGBMode()),
+    ConfigOption("--rgb-samples", "rgb.samples", type=click.IntRange(min=1)),
 )
 
 
@@ -42,7 +62,8 @@ RENDER_OPTIONS = (
               help="When houses changed, were added or removed since OUT was rendered (their files are "
                    "fingerprinted), redo exactly those; without it such a run is refused, naming them.")
 @click.option("--retry-failed", is_flag=True, help="Render the houses that failed again.")
-def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed):
+@click.option("--no-rgb", is_flag=True, help="The same as --rgb none.")
+def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed, no_rgb):
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
@@ -62,6 +83,8 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
     if all(ctx.get_parameter_source(p) == ParameterSource.COMMANDLINE for p in ("cameras", "views_per_house")):
         raise click.UsageError("--cameras and --views-per-house exclude each other")
 
+    if no_rgb:
+        config = replace(config, rgb=replace(config.rgb, enabled=False))
     check_output(out, "store", kind="store")
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:

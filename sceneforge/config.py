@@ -49,14 +49,25 @@ _DERIVED: dict[type, frozenset[str]] = {CameraSamplerConfig: frozenset({"width",
 
 @dataclass(frozen=True)
 class RGBConfig:
-    """How RGB images are rendered (pyrender offscreen, EGL)."""
+    """How RGB images are rendered: rasterised (pyrender, EGL) or path-traced (Mitsuba 3)."""
 
     #: render RGB images; without them the store has no ``rgb`` array
     enabled: bool = True
-    #: multisample antialiasing (off: every pixel shows the surface its centre sees, like the layers)
+    #: how RGB images are made: ``raster`` (pyrender through EGL, per-pixel lights, fast) or
+    #: ``pathtraced`` (Mitsuba 3, global illumination, seconds per view); the store's saved
+    #: config records it
+    mode: typing.Literal["raster", "pathtraced"] = "raster"
+    #: raster only: multisample antialiasing (off: every pixel shows the surface its centre
+    #: sees, like the layers)
     antialias: bool = False
-    #: lighting and background
+    #: pathtraced only: samples per pixel (fixed, with a fixed seed: the same view gives the same image)
+    samples: int = 64
+    #: lights and background
     lighting: RenderConfig = field(default_factory=RenderConfig)
+
+    def __post_init__(self):
+        if self.samples < 1:
+            raise ValueError(f"samples must be at least 1, got {self.samples}")
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@
 #   libGL                       PyOpenGL
 #   libusb-1.0                  Open3D (its Python module links it even without devices)
 #   libgomp                     Open3D (OpenMP)
+#   libLLVM 16+                 Mitsuba 3's CPU backend (Dr.Jit; LLVM 14 and 15 abort on its kernels)
 # Build tools of the Embree extension (setup.py builds it when they are there; without them
 # the install still succeeds and ray tracing runs on Open3D, only slower):
 #   g++                         the C++ compiler
@@ -23,11 +24,19 @@ declare -A LIBS=(
 )
 missing=()
 for lib in "${!LIBS[@]}"; do
-  ldconfig -p 2>/dev/null | grep -q "$lib" || missing+=("${LIBS[$lib]}")
+  # not `ldconfig -p | grep -q`: grep's early exit kills ldconfig with SIGPIPE, which pipefail reports
+  grep -q "$lib" <(ldconfig -p 2>/dev/null) || missing+=("${LIBS[$lib]}")
 done
 # DRI drivers live outside the linker's path
 compgen -G "/usr/lib/*/dri/swrast_dri.so" >/dev/null || compgen -G "/usr/lib*/dri/swrast_dri.so" >/dev/null \
   || missing+=(libgl1-mesa-dri)
+# LLVM 16 or newer: the newest libllvmNN package the distribution has
+newest_llvm=$( (ls /usr/lib/*/libLLVM*.so* 2>/dev/null || true) | sed -nE 's/.*libLLVM(-|\.so\.)([0-9]+).*/\2/p' \
+  | sort -n | tail -n 1)
+if [ "${newest_llvm:-0}" -lt 16 ]; then
+  llvm=$(apt-cache search --names-only '^libllvm[0-9]+$' 2>/dev/null | cut -d' ' -f1 | sort -V | tail -n 1)
+  missing+=("${llvm:-libllvm19}")
+fi
 
 build=()
 command -v c++ >/dev/null || command -v g++ >/dev/null || build+=(g++)

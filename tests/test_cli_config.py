@@ -59,7 +59,7 @@ def test_help_shows_the_field_docs_and_defaults():
     assert "--epochs INTEGER RANGE Passes over the training views (paper: 40). [default: 40; x>=1]" in text
     assert "--gating [volume|surface]" in text and "[default: volume]" in text
     text = one_line(CliRunner().invoke(cli, ["render", "--help"]).output)
-    assert "[default: 320x240]" in text and "[default: rgb]" in text and "--strict / --no-strict" in text
+    assert "[default: 320x240]" in text and "[default: raster]" in text and "--strict / --no-strict" in text
     assert "config default" not in text
 
 
@@ -92,8 +92,16 @@ def test_options_typed_override_the_file_and_others_leave_it_alone(tmp_path):
     assert (got["seed"], got["views_per_house"], got["width"], got["height"]) == (7, 2, 64, 48)
     assert not got["rgb"]["enabled"] and got["view"]["overhead"]["resolution"] == 64
     assert got["houses"]["scale"] == 0.5 and got["houses"]["strict"] is False
-    got = resolved(DatasetConfig, RENDER_OPTIONS, "--config", path, "--rgb", "--strict")
+    got = resolved(DatasetConfig, RENDER_OPTIONS, "--config", path, "--rgb", "raster", "--strict")
     assert got["rgb"]["enabled"] and got["houses"]["strict"] and got["seed"] == 3
+
+
+def test_rgb_mode_option_sets_mode_and_enabled():
+    assert resolved(DatasetConfig, RENDER_OPTIONS)["rgb"] | {"lighting": None} == {
+        "enabled": True, "mode": "raster", "antialias": False, "samples": 64, "lighting": None}
+    got = resolved(DatasetConfig, RENDER_OPTIONS, "--rgb", "pathtraced", "--rgb-samples", 8)["rgb"]
+    assert (got["enabled"], got["mode"], got["samples"]) == (True, "pathtraced", 8)
+    assert resolved(DatasetConfig, RENDER_OPTIONS, "--rgb", "none")["rgb"]["enabled"] is False
 
 
 def test_one_option_may_set_several_fields(tmp_path):

@@ -196,10 +196,12 @@ def test_obj_groups_polygons_negative_indices_and_materials(tmp_path):
     assert (cabinet.name, cabinet.category_name, len(cabinet.faces)) == ("cabinet", "cabinet", 4)
     assert trimesh.Trimesh(floor.vertices, floor.faces).area == pytest.approx(4.0)
     assert trimesh.Trimesh(cabinet.vertices, cabinet.faces).area == pytest.approx(1.25 + 0.5)
-    assert h.warnings == ["object 'cabinet': 2 materials, kept the one covering the most area"]
+    assert h.warnings == []  # every material kept: a face group each, in order of first use
+    assert [m.base_color for m in cabinet.materials] == [(1.0, 0.0, 0.0, 0.5), (0.2, 0.3, 0.4, 1.0)]
+    np.testing.assert_array_equal(cabinet.face_material, [0, 0, 0, 1])
     assert floor.material.texture == tmp_path / "wood.png"
     assert floor.material.base_color == (0.2, 0.3, 0.4, 1.0)
-    assert cabinet.material.base_color == (1.0, 0.0, 0.0, 0.5) and cabinet.uv is None
+    assert cabinet.material.base_color == (1.0, 0.0, 0.0, 0.5) and cabinet.uv is None  # the most area
     np.testing.assert_allclose(floor.uv[np.argsort(floor.vertices[:, 0] * 3 + floor.vertices[:, 2])],
                                [[0, 0], [0, 1], [1, 0], [1, 1]])
 
@@ -362,7 +364,10 @@ def test_handmade_gltf_transforms_order_and_merging(tmp_path):
     normals = trimesh.Trimesh(table.vertices, table.faces, process=False).face_normals
     np.testing.assert_allclose(normals, [[0, 0, 1]] * 4, atol=1e-9)  # strip winding alternates correctly
     assert table.material.base_color == (0.0, 0.0, 1.0, 1.0)  # of the primitive with the most area
-    assert any("'combo': 3 materials" in w for w in h.warnings)
+    # every primitive keeps its material: red, glTF's default white, blue
+    assert [m.base_color for m in table.materials] == [(1.0, 0.0, 0.0, 1.0), (1.0, 1.0, 1.0, 1.0), (0.0, 0.0, 1.0, 1.0)]
+    np.testing.assert_array_equal(table.face_material, [0, 1, 1, 2])
+    assert not any("materials" in w for w in h.warnings)
     # a mirroring node flips the winding so that the normal still follows the surface
     np.testing.assert_allclose(mirror.vertices, TRI * [-1, 1, 1])
     np.testing.assert_allclose(trimesh.Trimesh(mirror.vertices, mirror.faces).face_normals, [[0, 0, 1]])

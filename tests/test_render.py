@@ -30,10 +30,18 @@ from sceneforge.cameras import (
     sample_cameras,
 )
 from sceneforge.errors import SceneforgeError
-from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
+from sceneforge.houses import BUNDLED_TOY, House, Instance, Material, Room, discover, load, make_instance
 from sceneforge.layers import frontal_layers
 from sceneforge.raytrace import HouseTracer
-from sceneforge.render import GAMMA, RenderConfig, Renderer, room_lights, shade_house
+from sceneforge.render import (
+    RenderConfig,
+    Renderer,
+    house_batches,
+    house_lights,
+    linear_to_srgb,
+    room_lights,
+    srgb_to_linear,
+)
 
 from .conftest import BREAKFAST_ROOM, box_instance, box_room
 
@@ -41,8 +49,8 @@ pytest.importorskip("pyrender", reason="pyrender is not installed (pip install '
 
 GOLDEN = Path(__file__).parent / "golden"
 REGEN = os.environ.get("SCENEFORGE_REGEN_GOLDEN") == "1"
-#: light every surface with exactly its base colour: rendered pixel = texel × base^(1/γ)
-UNLIT = RenderConfig(ambient=1.0, light=0.0)
+#: light every surface with exactly its base colour: rendered pixel = sRGB(linear texel × base)
+UNLIT = RenderConfig(ambient=1.0, light=0.0, window_light=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -190,13 +198,69 @@ def test_unreadable_texture_names_house_and_file(tmp_path):
 
 
 def test_base_colour_and_alpha():
-    """Untextured: the linear base colour, gamma-encoded; alpha is ignored (opaque, like the layers)."""
+    """Untextured: the linear base colour, sRGB-encoded; alpha is ignored (opaque, like the layers)."""
     house, camera = quad_house(None)
     house.instances[0].material = Material((0.25, 0.5, 1.0, 0.3))
     with Renderer(64, 48, config=UNLIT) as r:
         rgb = r.render(house, camera)
-    expected = np.round(255 * np.array([0.25, 0.5, 1.0]) ** (1 / GAMMA))
+    expected = np.round(255 * linear_to_srgb([0.25, 0.5, 1.0]))
     np.testing.assert_allclose(rgb[24, 32], expected, atol=1)
+
+
+def test_shading_is_linear_texels_times_light():
+    """A mid-grey sRGB texel (128) under half the light is sRGB(0.5 · linear(128)) = 92, not
+    the 64 of shading in sRGB space: textures are decoded, shaded linearly, encoded."""
+    texture = Image.fromarray(np.full((4, 4, 3), 128, np.uint8))
+    house, camera = quad_house(texture)
+    with Renderer(64, 48, config=RenderConfig(ambient=0.5, light=0.0, window_light=0.0)) as r:
+        rgb = r.render(house, camera).astype(int)
+    expected = round(255 * float(linear_to_srgb(0.5 * srgb_to_linear(128 / 255))))
+    assert expected == 92
+    assert (np.abs(rgb[8:40, 16:48] - expected) <= 1).all()
+
+
+def test_golden_textured_quad(tmp_path):
+    """The quadrant texture on a quad under a room light, as it looked (orientation, colour
+    space, per-pixel falloff); tolerance for GL drivers' rounding."""
+    texture = quadrant_image()
+    texture.save(tmp_path / "t.png")
+    house, camera = quad_house(tmp_path / "t.png")
+    house.rooms.append(Room("r", "room", 0))
+    house.instances[0].room_id = "r"
+    with Renderer(64, 48, config=RenderConfig(ambient=0.2, light=0.6, light_below_ceiling=0.0)) as r:
+        rgb = r.render(house, camera)
+    compare_golden(rgb, "textured_quad.png")
+    # per pixel: the centre of the quad (nearest the light in front of it) is the brightest white
+    white = rgb[26:46, 0:30].astype(int).sum(-1)
+    assert white.std() > 1
+
+
+def two_material_box() -> tuple[House, Instance, Camera]:
+    """A box in a room: its top faces (normal +y) red, its sides blue; seen from above at a slant."""
+    house = boxed_room()
+    box = box_instance(house, "box", 29, (0.6, 0.5, 0.4), (0.31, 0.25, 0.73))
+    normals = np.cross(*(box.vertices[box.faces[:, k]] - box.vertices[box.faces[:, 0]] for k in (1, 2)))
+    box.materials = (Material((1.0, 0.0, 0.0, 1.0)), Material((0.0, 0.0, 1.0, 1.0)))
+    box.face_material = np.where(normals[:, 1] > 0.5 * np.linalg.norm(normals, axis=1), 0, 1).astype(np.int32)
+    assert set(box.face_material) == {0, 1}
+    camera = Camera(default_intrinsics(160, 120), pose_from_view([-0.9, 1.6, -1.2], [0.6, -0.7, 1.0]), 160, 120)
+    return house, box, camera
+
+
+def test_box_with_two_materials_shows_each_where_its_faces_are():
+    house, box, camera = two_material_box()
+    layers = frontal_layers(house, camera)
+    on_box = layers.instance[0] == box.id
+    # the world normal of each pixel's first hit: up = a top face (red), else a side (blue)
+    up = (np.einsum("ij,jhw->ihw", camera.cam_to_world[:3, :3], np.nan_to_num(layers.normal))[1] > 0.9)
+    top, side = on_box & up, on_box & ~up
+    assert top.sum() > 100 and side.sum() > 100
+    with Renderer(160, 120) as r:
+        rgb = r.render(house, camera).astype(int)
+    red = (rgb[..., 0] > 0) & (rgb[..., 1] == 0) & (rgb[..., 2] == 0)
+    blue = (rgb[..., 2] > 0) & (rgb[..., 0] == 0) & (rgb[..., 1] == 0)
+    np.testing.assert_array_equal(red, top)
+    np.testing.assert_array_equal(blue, side)
 
 
 # --------------------------------------------------------------------------- lighting
@@ -210,35 +274,79 @@ def test_room_light_hangs_under_the_ceiling_centre():
     np.testing.assert_allclose(light.intensity, 0.5 * (2 * 2.1 ** 2 + 2.9 ** 2))
 
 
-def test_baked_lighting_is_lambert_over_distance_squared_from_either_side():
-    config = RenderConfig(ambient=0.2, light=0.5, light_below_ceiling=0.0)
-    house = House(id="two", instances=[], rooms=[Room("a", "room", 0)])
-    # a floor quad (1 × 1 m at y = 0) and a marker that sets the room's top at y = 2
-    floor = make_instance(house, name="floor", category=2, label="floor", room_id="a",
-                          vertices=[[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], faces=[[0, 2, 1], [0, 3, 2]],
-                          material=Material((0.6, 0.6, 0.6, 1.0)))
-    make_instance(house, name="lamp", category=35, label="lamp", room_id="a",
-                  vertices=[[0.5, 2, 0.5], [0.6, 2, 0.5], [0.5, 2, 0.6]], faces=[[0, 1, 2]])
-    (light,) = room_lights(house, config).values()
-    np.testing.assert_allclose(light.position, [0.5, 2.0, 0.5])
-    (batch,) = shade_house(house, config)
-    corners = batch.positions[:6]
-    d2 = ((light.position - corners) ** 2).sum(1)
-    irradiance = light.intensity * (2.0 / np.sqrt(d2)) / d2  # cos = height / distance
-    expected = (0.6 * (0.2 + irradiance)) ** (1 / GAMMA)
-    np.testing.assert_allclose(batch.colors[:6, 0], expected, rtol=1e-6)
-    assert (batch.colors[:, 3] == 1).all()
-    # the floor turned upside down (normals down) is lit the same
-    floor.faces = floor.faces[:, ::-1].copy()
-    np.testing.assert_allclose(shade_house(house, config)[0].colors, batch.colors)
-
-
-def test_a_room_is_lit_by_its_own_light_only():
+def test_lamps_replace_the_fallback_and_windows_shine_inwards():
     house = boxed_room()
-    before = shade_house(house)[0].colors.copy()
-    box_instance(house, "other room's wardrobe", 3, (1, 2.5, 1), (10, 1.25, 0), room_id="r1")
-    after = shade_house(house)[0].colors
-    np.testing.assert_array_equal(after[: len(before)], before)
+    config = RenderConfig(light=0.4, window_light=0.2)
+    assert [light.source for light in house_lights(house, config)] == ["fallback"]
+    lamp = box_instance(house, "lamp", 35, (0.2, 1.6, 0.2), (1.0, 0.8, 1.0))  # a floor lamp
+    window = make_instance(house, name="window", category=9, label="window", room_id=lamp.room_id,
+                           vertices=[[-2, 1, -1], [-2, 2, -1], [-2, 2, 1], [-2, 1, 1]], faces=[[0, 1, 2], [0, 2, 3]])
+    lights = house_lights(house, config)
+    assert [light.source for light in lights] == ["lamp", "window"]
+    np.testing.assert_allclose(lights[0].position, [1.0, 1.6 + 0.3, 1.0])  # a standing lamp: above its top
+    hanging = box_instance(house, "pendant", 35, (0.3, 0.2, 0.3), (-1.0, 2.7, 0.0))
+    np.testing.assert_allclose(house_lights(house, config)[1].position, [-1.0, 2.6 - 0.3, 0.0])  # below it
+    house.instances.remove(hanging)
+    np.testing.assert_allclose(lights[1].position, [-2, 1.5, 0])
+    assert lights[1].direction[0] > 0 and lights[1].direction[1] < 0  # into the room, downwards
+    assert window.envelope
+
+
+def test_per_pixel_light_is_lambert_over_distance_squared_from_either_side():
+    """A floor lit by its room's light, per pixel: sRGB(base · (ambient + I cos / d²)) at the
+    surface point of each pixel centre, whichever way the floor's faces are wound."""
+    config = RenderConfig(ambient=0.2, light=0.5, light_below_ceiling=0.0, window_light=0.0)
+    house = House(id="two", instances=[], rooms=[Room("a", "room", 0)])
+    # an object (not envelope), so that D1 and its instance layer see it
+    floor = make_instance(house, name="board", category=0, label="board", room_id="a",
+                          vertices=[[-2, 0, 0], [2, 0, 0], [2, 0, 4], [-2, 0, 4]], faces=[[0, 2, 1], [0, 3, 2]],
+                          material=Material((0.6, 0.6, 0.6, 1.0)))
+    # a marker that sets the top of the room's bounds at y = 2
+    make_instance(house, name="marker", category=0, label="marker", room_id="a",
+                  vertices=[[0, 2, 2], [0.01, 2, 2], [0, 2, 2.01]], faces=[[0, 1, 2]])
+    (light,) = house_lights(house, config)
+    np.testing.assert_allclose(light.position, [0.0, 2.0, 2.0], atol=0.01)
+    camera = look_at_camera([0, 1.0, -0.5], [0, -0.6, 1], width=64, height=48)
+    hits = frontal_layers(house, camera)
+    seen = hits.instance[0] == floor.id
+    origins, directions, depth_scale = camera.rays()
+    t = (hits.depth[0].ravel() / depth_scale)[seen.ravel()]
+    points = origins[seen.ravel()] + t[:, None] * directions[seen.ravel()]
+    to_light = light.position - points
+    d2 = (to_light ** 2).sum(1)
+    irradiance = light.intensity * (to_light[:, 1] / np.sqrt(d2)) / np.maximum(d2, config.light_min_distance ** 2)
+    expected = 255 * linear_to_srgb(0.6 * (config.ambient + irradiance))
+    for flip in (False, True):
+        if flip:
+            floor.faces = floor.faces[:, ::-1].copy()
+        with Renderer(64, 48, config=config) as r:
+            rgb = r.render(house, camera).astype(float)
+        assert np.abs(rgb[seen][:, 0] - expected).max() <= 2.0, flip
+
+
+def test_a_room_is_lit_by_its_own_lights_only():
+    """A lamp of another room, even one standing inside this room's bounds (behind the
+    camera), changes no pixel: a room's geometry sees only its own room's lights."""
+    house = boxed_room()
+    camera = look_at_camera([0, 1.5, -1.0], [0.1, -0.2, 1.0], width=64, height=48)
+    with Renderer(64, 48) as r:
+        before = r.render(house, camera)
+    box_instance(house, "other room's lamp", 35, (0.2, 0.2, 0.2), (0.0, 1.5, -1.8), room_id="r1")
+    assert [light.room for light in house_lights(house, RenderConfig())] == ["r0", "r1"]
+    with Renderer(64, 48) as r:  # a renderer keeps the scene of a house it has seen
+        after = r.render(house, camera)
+    assert camera.project([[0.0, 1.5, -1.8]])[1][0] <= 0  # behind the camera: not in the image
+    np.testing.assert_array_equal(after, before)
+
+
+def test_batches_group_faces_by_room_and_material():
+    house, box, _ = two_material_box()
+    batches = house_batches(house)
+    colours = [b.material.base_color for b in batches]
+    assert colours == [(0.8, 0.8, 0.8, 1.0), (1.0, 0.0, 0.0, 1.0), (0.0, 0.0, 1.0, 1.0)]
+    red, blue = batches[1], batches[2]
+    assert len(red.positions) == 3 * (box.face_material == 0).sum()
+    assert len(blue.positions) == 3 * (box.face_material == 1).sum()
 
 
 # --------------------------------------------------------------------------- lifecycle
@@ -288,19 +396,24 @@ def test_unknown_gpu_is_a_one_line_error():
 # --------------------------------------------------------------------------- golden image
 
 
-def test_golden_toy_view(toy_houses):
-    """A toy-house view looks as it did (tolerance: GL drivers round differently)."""
-    path = GOLDEN / "toy_0_000_view.png"
-    camera = look_at_camera([0.4, 1.6, 3.7], [1.0, -0.3, -1.0], width=160, height=120)  # living room corner
-    with Renderer(160, 120) as r:
-        rgb = r.render(toy_houses[0], camera)
+def compare_golden(rgb: np.ndarray, name: str) -> None:
+    """``rgb`` looks like ``tests/golden/<name>`` (tolerance: GL drivers round differently)."""
+    path = GOLDEN / name
     if REGEN:
         GOLDEN.mkdir(exist_ok=True)
         Image.fromarray(rgb).save(path, optimize=True)
     golden = np.asarray(Image.open(path).convert("RGB")).astype(int)
     diff = np.abs(rgb.astype(int) - golden).max(-1)
     assert diff.mean() < 1.0 and (diff > 8).mean() < 0.01, \
-        f"mean difference {diff.mean():.2f}, {100 * (diff > 8).mean():.1f} % of pixels off by > 8"
+        f"{name}: mean difference {diff.mean():.2f}, {100 * (diff > 8).mean():.1f} % of pixels off by > 8"
+
+
+def test_golden_toy_view(toy_houses):
+    """A toy-house view looks as it did."""
+    camera = look_at_camera([0.4, 1.6, 3.7], [1.0, -0.3, -1.0], width=160, height=120)  # living room corner
+    with Renderer(160, 120) as r:
+        rgb = r.render(toy_houses[0], camera)
+    compare_golden(rgb, "toy_0_000_view.png")
 
 
 # --------------------------------------------------------------------------- EGL failures

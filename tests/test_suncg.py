@@ -367,4 +367,5 @@ def test_read_obj_polygons_negative_indices_and_uv_seams(tmp_path):
     # the five vertices keep their order; vertex 1 used with a second uv is appended
     np.testing.assert_array_equal(m.vertices, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 0]])
     np.testing.assert_array_equal(m.uv, [[0, 0], [1, 0], [1, 1], [0, 1], [1, 1], [0.5, 0.5]])
-    assert m.material.base_color == (0.0, 0.0, 1.0, 0.5)  # "b" colours 3 of the 5 triangles
+    assert [c.base_color for c in m.materials] == [(1.0, 0.0, 0.0, 1.0), (0.0, 0.0, 1.0, 0.5)]
+    np.testing.assert_array_equal(m.face_material, [0, 0, 1, 1, 1])  # "a": the quad, "b": the rest

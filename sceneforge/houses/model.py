@@ -8,6 +8,7 @@ place that checks geometry and decides the envelope flag.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,31 +22,49 @@ if TYPE_CHECKING:
     import PIL.Image
 
 
+#: how texture coordinates outside [0, 1] sample a texture (OpenGL's REPEAT,
+#: CLAMP_TO_EDGE and MIRRORED_REPEAT; glTF's 10497, 33071 and 33648)
+WRAPS = ("repeat", "clamp", "mirror")
+
+
 @dataclass
 class Material:
-    """How an instance looks when rendered.
+    """How a group of faces looks when rendered.
 
-    base_color : (4,) float  linear RGBA in [0, 1]
+    base_color : (4,) float  linear RGBA in [0, 1]; multiplies the texture (SUNCG's ``Kd``
+                 tints its ``map_Kd``, glTF's base-colour factor its texture)
     texture    : path of an image file, a PIL image (textures embedded in GLB), or None;
-                 sampled with the instance's ``uv``
+                 sampled with the instance's ``uv``; its texels are sRGB-encoded (decoded to
+                 linear before shading)
+    wrap       : (s, t) wrapping of the texture, each one of :data:`WRAPS`
     """
 
     base_color: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
     texture: "Path | PIL.Image.Image | None" = None
+    wrap: tuple[str, str] = ("repeat", "repeat")
 
 
 @dataclass
 class Instance:
     """One object or envelope part of a house.
 
-    vertices : (n, 3) float64  world coordinates, metres, +Y up
-    faces    : (m, 3) int64    counter-clockwise seen from outside (normals out)
-    uv       : (n, 2) float32  texture coordinates, or None; OpenGL/OBJ convention: (0, 0) is
-               the bottom-left corner of the image, v = 0 its bottom row, v = 1 its top row
-    category : NYU40 id (0 = void)
-    label    : the source's own category name (e.g. SUNCG fine class), kept for rules
-               that NYU40 cannot express (fireplace, chandelier, ...)
-    envelope : part of the room envelope (wall, floor, ceiling, door, window, ...)
+    vertices      : (n, 3) float64  world coordinates, metres, +Y up
+    faces         : (m, 3) int64    counter-clockwise seen from outside (normals out)
+    uv            : (n, 2) float32  texture coordinates, or None; OpenGL/OBJ convention: (0, 0)
+                    is the bottom-left corner of the image, v = 0 its bottom row, v = 1 its top row
+    category      : NYU40 id (0 = void)
+    label         : the source's own category name (e.g. SUNCG fine class), kept for rules
+                    that NYU40 cannot express (fireplace, chandelier, ...)
+    envelope      : part of the room envelope (wall, floor, ceiling, door, window, ...)
+    materials     : the materials of the instance's face groups (a chair's fabric and legs);
+                    every one is used by some face
+    face_material : (m,) int32  each face's index into ``materials``, or None: all use
+                    ``materials[0]``
+    colors        : (n, 4) float32  linear RGBA per vertex that multiplies the material
+                    (PLY vertex colours), or None
+
+    ``material`` is the one material of code that knows of one: the material covering the
+    most area; setting it gives every face that material.
     """
 
     id: int
@@ -56,12 +75,32 @@ class Instance:
     vertices: np.ndarray
     faces: np.ndarray
     envelope: bool
-    material: Material = field(default_factory=Material)
+    materials: tuple[Material, ...] = field(default_factory=lambda: (Material(),))
     uv: np.ndarray | None = None
+    face_material: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     @property
     def category_name(self) -> str:
         return NYU40_NAMES[self.category]
+
+    @property
+    def material(self) -> Material:
+        if self.face_material is None or len(self.materials) == 1:
+            return self.materials[0]
+        area = np.linalg.norm(np.cross(*(self.vertices[self.faces[:, k]] - self.vertices[self.faces[:, 0]]
+                                         for k in (1, 2))), axis=1)
+        return self.materials[int(np.argmax(np.bincount(self.face_material, area, len(self.materials))))]
+
+    @material.setter
+    def material(self, material: Material) -> None:
+        self.materials, self.face_material = (material,), None
+
+    def face_materials(self) -> np.ndarray:
+        """(m,) int32 each face's index into ``materials`` (zeros for one material)."""
+        if self.face_material is None:
+            return np.zeros(len(self.faces), np.int32)
+        return self.face_material
 
 
 @dataclass
@@ -137,14 +176,21 @@ def make_instance(
     vertices,
     faces,
     file: str | Path | None = None,
-    material: Material | None = None,
+    material: Material | Sequence[Material] | None = None,
     uv=None,
+    face_material=None,
+    colors=None,
 ) -> Instance | None:
     """Check one mesh and add it to ``house`` as a new instance.
 
-    Raises :class:`HouseError` for non-finite vertices or faces indexing past the vertex
-    array. Degenerate faces (repeated index or zero area) are dropped and counted in
-    ``house.warnings``. Returns None (and adds nothing) when no face is left.
+    material      : one material, or the materials of the face groups that ``face_material``
+                    ((m,) int, an index into them per face) assigns; None: the default one
+    colors        : (n, 4) linear RGBA per vertex multiplying the material, or None
+
+    Raises :class:`HouseError` for non-finite vertices, faces indexing past the vertex
+    array or face materials past the materials. Degenerate faces (repeated index or zero
+    area) are dropped and counted in ``house.warnings``; materials that no face is left
+    with are dropped too. Returns None (and adds nothing) when no face is left.
     """
     where = file or house.source_path
     v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
@@ -158,6 +204,16 @@ def make_instance(
             f"instance {name!r}: face index {int(f.max() if f.max() >= len(v) else f.min())} "
             f"is outside the {len(v)} vertices",
         )
+    materials = ((material or Material(),) if material is None or isinstance(material, Material)
+                 else tuple(m or Material() for m in material))
+    fm = None
+    if face_material is not None:
+        fm = np.asarray(face_material, dtype=np.int64).reshape(-1)
+        if len(fm) != len(f) or (len(fm) and (fm.min() < 0 or fm.max() >= len(materials))):
+            raise HouseError(house.id, where, f"instance {name!r}: face materials must be {len(f)} indices "
+                                              f"into its {len(materials)} materials")
+    elif len(materials) > 1:
+        raise HouseError(house.id, where, f"instance {name!r}: {len(materials)} materials but no face materials")
     if not 0 <= category < len(NYU40_NAMES):
         raise HouseError(house.id, where, f"instance {name!r}: NYU40 id {category} is not in 0..40")
     if len(f):
@@ -171,6 +227,7 @@ def make_instance(
         if dropped:
             house.warnings.append(f"instance {name!r}: dropped {dropped} degenerate faces")
             f = f[keep]
+            fm = None if fm is None else fm[keep]
     if not len(f):
         house.warnings.append(f"instance {name!r}: no faces, skipped")
         return None
@@ -178,6 +235,14 @@ def make_instance(
         uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
         if len(uv) != len(v):
             uv = None
+    if colors is not None:
+        colors = np.asarray(colors, dtype=np.float32).reshape(-1, 4)
+        if len(colors) != len(v):
+            raise HouseError(house.id, where, f"instance {name!r}: {len(colors)} vertex colours for {len(v)} vertices")
+    if fm is not None:
+        used, fm = np.unique(fm, return_inverse=True)
+        materials = tuple(materials[k] for k in used)
+        fm = fm.astype(np.int32) if len(materials) > 1 else None
     inst = Instance(
         id=len(house.instances),
         name=name,
@@ -187,8 +252,10 @@ def make_instance(
         vertices=v,
         faces=f,
         envelope=is_envelope(int(category), label),
-        material=material or Material(),
+        materials=materials,
         uv=uv,
+        face_material=fm,
+        colors=colors,
     )
     house.instances.append(inst)
     return inst

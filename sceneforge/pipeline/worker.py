@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ..errors import MissingDependencyError
-
 if TYPE_CHECKING:
     from ..config import DatasetConfig
     from ..houses import HouseSource
@@ -48,12 +46,10 @@ class Worker:
             if self.renderer is not None:
                 self.renderer.close()
             self.renderer = self.renderer_key = None
-            try:
-                from ..render import Renderer
-            except ImportError as e:
-                raise MissingDependencyError("pyrender", "RGB rendering", "pip install sceneforge[render]") from e
-            self.renderer = Renderer(config.width, config.height, antialias=config.rgb.antialias,
-                                     config=config.rgb.lighting)
+            from ..render import open_renderer
+
+            self.renderer = open_renderer(config.rgb.mode, config.width, config.height, antialias=config.rgb.antialias,
+                                          config=config.rgb.lighting, samples=config.rgb.samples)
             self.renderer_key = key
         return self.renderer
 

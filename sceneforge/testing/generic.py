@@ -8,11 +8,11 @@ from pathlib import Path
 
 from ..errors import SceneforgeError
 from ..houses.formats.generic import SUFFIXES, tagged_name
-from ..houses.formats.meshio import Mesh
 from ..houses.model import House
 from .gltf import write_gltf
 from .obj import write_obj
 from .ply import write_ply
+from .textures import mesh_of
 
 
 def write_house(house: House, path: str | Path, names: list[str] | None = None) -> Path:
@@ -35,8 +35,7 @@ def write_house(house: House, path: str | Path, names: list[str] | None = None) 
     if suffix in (".gltf", ".glb"):
         write_gltf(path, house, names)
     elif suffix == ".obj":
-        write_obj(path, [Mesh(i.vertices, i.faces, i.uv, i.material, name)
-                         for i, name in zip(house.instances, names, strict=True)],
+        write_obj(path, [mesh_of(i, name=name) for i, name in zip(house.instances, names, strict=True)],
                   comment=f"sceneforge house {house.id}: objects are named <nyu40 class>__<name>")
     else:
         write_ply(path, house, names)

@@ -19,12 +19,14 @@ _MIME_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 def write_gltf(path: Path, house: House, names: list[str]) -> None:
     """Write ``house`` as ``.gltf`` (+ ``.bin`` and image files) or ``.glb`` (by suffix).
 
-    One node and mesh per instance, named ``names[k]``; positions are float32 relative to
-    the instance's centre, which is the node's translation. Textures other than PNG and JPEG
+    One node and mesh per instance, named ``names[k]``, with one primitive per material of
+    the instance (its faces in order); positions are float32 relative to the instance's
+    centre, which is the node's translation. Texture wrapping goes into samplers. Textures other than PNG and JPEG
     (the two types core glTF allows) are re-encoded as PNG.
     """
     binary = path.suffix.lower() == ".glb"
-    materials, material_index, textures = distinct_materials([i.material for i in house.instances])
+    starts = np.cumsum([0] + [len(i.materials) for i in house.instances])
+    materials, flat_index, textures = distinct_materials([m for i in house.instances for m in i.materials])
     chunks: list[bytes] = []
     views: list[dict] = []
     accessors: list[dict] = []
@@ -54,16 +56,20 @@ def write_gltf(path: Path, house: House, names: list[str]) -> None:
             file = f"{path.stem}_texture{k}{suffix}"
             (path.parent / file).write_bytes(data)
             images.append({"uri": file})
+    gl_textures: dict[tuple, int] = {}  # (texture, wrap) → index of its glTF texture
+    samplers: dict[tuple, int] = {}
     texture_index = {id(t): k for k, t in enumerate(textures)}
     gl_materials = []
     for m in materials:
         pbr = {"baseColorFactor": list(m.base_color), "metallicFactor": 0.0, "roughnessFactor": 1.0}
         if m.texture is not None:
-            pbr["baseColorTexture"] = {"index": texture_index[id(m.texture)]}
+            sampler = samplers.setdefault(tuple(m.wrap), len(samplers))
+            pbr["baseColorTexture"] = {"index": gl_textures.setdefault((texture_index[id(m.texture)], sampler),
+                                                                       len(gl_textures))}
         gl_materials.append({"pbrMetallicRoughness": pbr})
 
     meshes, nodes = [], []
-    for inst, name, mat in zip(house.instances, names, material_index, strict=True):
+    for k, (inst, name) in enumerate(zip(house.instances, names, strict=True)):
         # float32 positions relative to the instance's centre (kept in float64 as the node's
         # translation) lose far less than world coordinates would
         center = (inst.vertices.min(axis=0) + inst.vertices.max(axis=0)) / 2
@@ -72,9 +78,12 @@ def write_gltf(path: Path, house: House, names: list[str]) -> None:
         if inst.uv is not None:
             uv = np.column_stack([inst.uv[:, 0], 1.0 - inst.uv[:, 1]]).astype("<f4")
             attributes["TEXCOORD_0"] = accessor(uv, 5126, "VEC2", 34962)
-        indices = accessor(inst.faces.astype("<u4").ravel(), 5125, "SCALAR", 34963)
-        primitive = {"attributes": attributes, "indices": indices, "material": mat}
-        meshes.append({"name": name, "primitives": [primitive]})
+        group = inst.face_materials()
+        primitives = []
+        for g in range(len(inst.materials)):
+            indices = accessor(inst.faces[group == g].astype("<u4").ravel(), 5125, "SCALAR", 34963)
+            primitives.append({"attributes": attributes, "indices": indices, "material": flat_index[starts[k] + g]})
+        meshes.append({"name": name, "primitives": primitives})
         nodes.append({"name": name, "mesh": len(meshes) - 1, "translation": center.tolist()})
 
     blob = b"".join(chunks)
@@ -95,7 +104,9 @@ def write_gltf(path: Path, house: House, names: list[str]) -> None:
         "buffers": [buffer] if blob else [],
     }
     if textures:
-        doc |= {"images": images, "textures": [{"source": k} for k in range(len(textures))]}
+        codes = {"repeat": 10497, "clamp": 33071, "mirror": 33648}
+        doc |= {"images": images, "textures": [{"source": t, "sampler": s} for t, s in gl_textures],
+                "samplers": [{"wrapS": codes[s], "wrapT": codes[t]} for s, t in samplers]}
     text = json.dumps(doc, separators=(",", ":")).encode()
     if not binary:
         path.write_bytes(text)

@@ -23,8 +23,10 @@ def write_obj(
     """Write meshes as one OBJ (an ``o`` object each, when named) with its MTL and textures.
 
     Vertices are written with 17 significant digits and uv with 9 (float32), so both read
-    back exactly. Equal materials are written once (``material<k>``); a texture file keeps
-    its image type and goes to ``<stem>_texture<k><suffix>`` beside the OBJ.
+    back exactly. A mesh of several materials (``Mesh.face_material``) gets a ``usemtl``
+    line before each run of faces of one material. Equal materials are written once
+    (``material<k>``); a texture file keeps its image type and goes to
+    ``<stem>_texture<k><suffix>`` beside the OBJ.
 
     mtl_name     : the MTL's file name (default ``<stem>.mtl``); no MTL without materials
     texture_name : the file name of the one texture (3D-FUTURE's ``texture.png``)
@@ -32,7 +34,9 @@ def write_obj(
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    materials, material_index, textures = distinct_materials([m.material for m in meshes])
+    groups = [m.materials if m.material is not None else (None,) for m in meshes]
+    materials, flat_index, textures = distinct_materials([g for group in groups for g in group])
+    starts = np.cumsum([0] + [len(g) for g in groups])
     if texture_name is not None and len(textures) > 1:
         raise ValueError(f"{path}: one texture_name for {len(textures)} textures")
     mtl_name = mtl_name or path.with_suffix(".mtl").name
@@ -42,21 +46,26 @@ def write_obj(
         if materials:
             fh.write(f"mtllib {mtl_name}\n")
         nv = nt = 0
-        for mesh, mat in zip(meshes, material_index, strict=True):
+        for k, mesh in enumerate(meshes):
             if mesh.name:
                 fh.write(f"o {mesh.name}\n")
-            if mat >= 0:
-                fh.write(f"usemtl material{mat}\n")
             vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
             f = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
             np.savetxt(fh, vertices, fmt="v %.17g %.17g %.17g")
             if mesh.uv is not None:
                 np.savetxt(fh, np.asarray(mesh.uv).reshape(-1, 2), fmt="vt %.9g %.9g")
-                corners = np.stack([f + nv + 1, f + nt + 1], axis=2).reshape(-1, 6)
-                np.savetxt(fh, corners, fmt="f %d/%d %d/%d %d/%d")
+                lines = np.stack([f + nv + 1, f + nt + 1], axis=2).reshape(-1, 6)
+                fmt = "f %d/%d %d/%d %d/%d"
                 nt += len(mesh.uv)
             else:
-                np.savetxt(fh, f + nv + 1, fmt="f %d %d %d")
+                lines, fmt = f + nv + 1, "f %d %d %d"
+            group = mesh.face_materials()
+            runs = np.flatnonzero(np.diff(group, prepend=-1, append=-1)) if len(group) else [0, 0]
+            for a, b in zip(runs[:-1], runs[1:], strict=True):
+                mat = flat_index[starts[k] + group[a]]
+                if mat >= 0:
+                    fh.write(f"usemtl material{mat}\n")
+                np.savetxt(fh, lines[a:b], fmt=fmt)
             nv += len(vertices)
     if materials:
         texture_files = {}
@@ -68,6 +77,7 @@ def write_obj(
             r, g, b, a = (float(c) for c in m.base_color)  # repr: the shortest text that reads back exactly
             lines += [f"newmtl material{k}", f"Kd {r!r} {g!r} {b!r}", f"d {a!r}"]
             if m.texture is not None:
-                lines.append(f"map_Kd {texture_files[id(m.texture)]}")
+                clamp = "-clamp on " if tuple(m.wrap) == ("clamp", "clamp") else ""
+                lines.append(f"map_Kd {clamp}{texture_files[id(m.texture)]}")
         (path.parent / mtl_name).write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path

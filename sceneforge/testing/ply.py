@@ -18,7 +18,7 @@ def write_ply(path: Path, house: House, names: list[str]) -> None:
     """Write ``house`` as a binary little-endian PLY, instance ``k`` named ``names[k]``.
 
     Vertices are float64 (exact), uv float32 (only when every instance has uv), colours
-    the base colour rounded to bytes.
+    each face's material's base colour rounded to bytes.
     """
     with_uv = bool(house.instances) and all(i.uv is not None for i in house.instances)
     vertex_fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -34,9 +34,10 @@ def write_ply(path: Path, house: House, names: list[str]) -> None:
         vertex_blocks.append(block)
         faces = np.zeros(len(inst.faces), face_dtype)
         faces["n"], faces["v"], faces["instance"] = 3, inst.faces + offset, inst.id
-        rgba = np.clip(np.round(np.asarray(inst.material.base_color) * 255), 0, 255)
-        for channel, value in zip(("red", "green", "blue", "alpha"), rgba, strict=True):
-            faces[channel] = value
+        palette = np.clip(np.round(np.array([m.base_color for m in inst.materials]) * 255), 0, 255)
+        rgba = palette[inst.face_materials()]
+        for k, channel in enumerate(("red", "green", "blue", "alpha")):
+            faces[channel] = rgba[:, k]
         face_blocks.append(faces)
         offset += len(inst.vertices)
     vertices = np.concatenate(vertex_blocks) if vertex_blocks else np.zeros(0, vertex_fields)

@@ -16,6 +16,7 @@ from ..houses.formats.meshio import Mesh
 from ..houses.formats.suncg import CATEGORY_CSV, CSV_FIELDS, ROOM_PARTS, VERSION
 from ..houses.model import House, Instance, Level, Room
 from .obj import write_obj
+from .textures import mesh_of
 
 
 def _safe(name: str) -> str:
@@ -30,12 +31,16 @@ def _bbox(instances: list[Instance]) -> dict:
 
 
 def _merge(instances: list[Instance]) -> Mesh:
-    """One mesh from several, with the material of the first (uv only when all have some)."""
+    """One mesh from several, each one's materials its face groups (uv only when all have some)."""
     offsets = np.cumsum([0] + [len(i.vertices) for i in instances])
     v = np.concatenate([i.vertices for i in instances])
     f = np.concatenate([i.faces + o for i, o in zip(instances, offsets[:-1], strict=True)])
     uv = None if any(i.uv is None for i in instances) else np.concatenate([i.uv for i in instances])
-    return Mesh(v, f, uv, instances[0].material)
+    meshes = [mesh_of(i) for i in instances]
+    starts = np.cumsum([0] + [len(m.materials) for m in meshes])
+    materials = tuple(x for m in meshes for x in m.materials)
+    group = np.concatenate([m.face_materials() + s for m, s in zip(meshes, starts[:-1], strict=True)])
+    return Mesh(v, f, uv, materials if len(materials) > 1 else materials[0], face_material=group if len(materials) > 1 else None)
 
 
 def _write_categories(path: Path, rows: list[dict]) -> None:
@@ -189,14 +194,14 @@ class _Writer:
         node = {"id": node_id, "valid": 1, "bbox": _bbox([inst])}
         if inst.category == NYU40_IDS["floor"] and inst.room_id is None:
             mid = f"{_safe(self.house.id)}_ground{k}"
-            write_obj(self.room_dir / f"{mid}f.obj", [Mesh(inst.vertices, inst.faces, inst.uv, inst.material)])
+            write_obj(self.room_dir / f"{mid}f.obj", [mesh_of(inst)])
             node.update(type="Ground", modelId=mid)
             return node
         mid = f"{_safe(self.house.id)}_{k}"
         lo, hi = inst.vertices.min(0), inst.vertices.max(0)
         origin = np.array([(lo[0] + hi[0]) / 2, lo[1], (lo[2] + hi[2]) / 2])
         write_obj(self.root / "object" / mid / f"{mid}.obj",
-                  [Mesh(inst.vertices - origin, inst.faces, inst.uv, inst.material)])
+                  [mesh_of(inst, inst.vertices - origin)])
         m = np.eye(4)
         m[:3, 3] = origin
         node.update(type="Object", modelId=mid, transform=m.T.reshape(-1).tolist())

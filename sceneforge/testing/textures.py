@@ -5,11 +5,12 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from ..houses.model import Material
+from ..houses.formats.meshio import Mesh
+from ..houses.model import Instance, Material
 
 
 def distinct_materials(materials: list[Material | None]) -> tuple[list[Material], list[int], list]:
-    """Equal materials (same colour, same texture object) written once.
+    """Equal materials (same colour, texture object and wrapping) written once.
 
     Returns the distinct materials, the index of each input among them (-1 for None) and the
     distinct textures in order of first use.
@@ -23,10 +24,19 @@ def distinct_materials(materials: list[Material | None]) -> tuple[list[Material]
             continue
         if m.texture is not None:
             textures.setdefault(id(m.texture), m.texture)
-        key = (tuple(float(c) for c in m.base_color), id(m.texture) if m.texture is not None else None)
+        key = (tuple(float(c) for c in m.base_color), id(m.texture) if m.texture is not None else None,
+               tuple(m.wrap))
         index.append(keys.setdefault(key, len(keys)))
-    distinct = [Material(base_color=color, texture=textures.get(tex_id)) for color, tex_id in keys]
+    distinct = [Material(base_color=color, texture=textures.get(tex_id), wrap=wrap) for color, tex_id, wrap in keys]
     return distinct, index, list(textures.values())
+
+
+def mesh_of(inst: Instance, vertices=None, name: str = "") -> Mesh:
+    """The :class:`Mesh` a writer writes for ``inst`` (its vertices or ``vertices`` (n, 3)):
+    its uv and every face group's material."""
+    material = inst.materials if inst.face_material is not None else inst.materials[0]
+    return Mesh(inst.vertices if vertices is None else vertices, inst.faces, inst.uv, material, name,
+                face_material=inst.face_material)
 
 
 def texture_suffix(texture) -> str:

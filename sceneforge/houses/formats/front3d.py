@@ -40,7 +40,7 @@ The scene JSON is read as the well-kept readers read it (the 3D-FRONT-ToolBox's
   instance; two on the same opening count once (a Door/Window before a Hole/Pocket).
 - Object meshes (cabinet boards, customised furniture: non-envelope types) of one room that
   share a ``constructid`` are one instance, the unit the file builds them as (a kitchen's 84
-  boards are its few cabinets); the material covering the most area is kept.
+  boards are its few cabinets); each piece's material is a face group of the instance.
 - ``material[]``: ``uid``, ``jid``, ``color`` (RGBA 0–255), ``texture`` (a URL, empty in real
   files), ``UVTransform``. The texture is ``3D-FRONT-texture/<jid>/texture.png`` (the
   toolbox's path; else the folder the URL names); ``uv`` becomes ``UVTransform[:2, :2] · uv``
@@ -79,7 +79,7 @@ from ...errors import HouseError, SceneforgeError
 from ..categories import data_file, resolve
 from ..model import House, Material, Room, make_instance
 from .base import Format, HouseSource, json_document
-from .meshio import Mesh, face_areas, place, quaternion_matrix
+from .meshio import Mesh, place, quaternion_matrix
 from .obj import read_obj
 
 if TYPE_CHECKING:
@@ -302,9 +302,10 @@ class _Piece:
     vertices: np.ndarray
     faces: np.ndarray
     uv: np.ndarray | None
-    material: Material | None
+    material: Material | tuple[Material, ...] | None  # a tuple: face groups, see face_material
     file: Path
     group: tuple | None = None  # pieces with the same group become one instance
+    face_material: np.ndarray | None = None  # (m,) int32 index into the material tuple
 
 
 @dataclass
@@ -400,8 +401,8 @@ class _Reader:
                 return BAD_MODEL
             texture = file.parent / "texture.png"
             if texture.is_file():
-                base = (mesh.material or Material()).base_color
-                mesh = replace(mesh, material=Material(base_color=base, texture=texture))
+                textured = tuple(replace(m, texture=texture) for m in mesh.materials)
+                mesh = replace(mesh, material=textured if mesh.face_material is not None else textured[0])
             self._models[jid] = mesh
         return self._models[jid]
 
@@ -491,7 +492,8 @@ class _Reader:
         label, cid = cat
         v, f = place(mesh.vertices, mesh.faces, m)
         self.pieces.append(_Piece(f"{label or 'furniture'}#{child.get('instanceid', entry.get('uid'))}", cid,
-                                  label, room_id, v, f, mesh.uv, mesh.material, self.future / jid / "raw_model.obj"))
+                                  label, room_id, v, f, mesh.uv, mesh.material, self.future / jid / "raw_model.obj",
+                                  face_material=mesh.face_material))
 
     def flag_scale(self, entry: dict, scale: np.ndarray, mesh: Mesh) -> None:
         """Count a piece whose scale or model size looks wrong (the piece is kept)."""
@@ -563,7 +565,7 @@ class _Reader:
             try:
                 make_instance(self.house, name=piece.name, category=piece.category, label=piece.label,
                               room_id=piece.room_id, vertices=piece.vertices, faces=piece.faces, uv=piece.uv,
-                              file=piece.file, material=piece.material)
+                              file=piece.file, material=piece.material, face_material=piece.face_material)
             except HouseError as e:
                 self.skip(BAD_PIECE, f"{e.problem}; skipped")
         self.close_openings()
@@ -595,15 +597,21 @@ class _Reader:
 
 
 def _merge(pieces: list[_Piece]) -> _Piece:
-    """One piece of several (same room, construct and class): the material of the largest."""
+    """One piece of several (same room, construct and class), each piece's materials its
+    face groups."""
     offsets = np.cumsum([0] + [len(p.vertices) for p in pieces[:-1]])
-    areas = [face_areas(p.vertices, p.faces).sum() for p in pieces]
+    materials, face_material = [], []
+    for p in pieces:
+        own = p.material if isinstance(p.material, tuple) else (p.material or Material(),)
+        index = p.face_material if p.face_material is not None else np.zeros(len(p.faces), np.int32)
+        face_material.append(index + len(materials))
+        materials += own
     first = pieces[0]
     uv = None if any(p.uv is None for p in pieces) else np.concatenate([p.uv for p in pieces])
     return replace(first, name=f"{first.label or 'mesh'}#{first.group[1]}",
                    vertices=np.concatenate([p.vertices for p in pieces]),
                    faces=np.concatenate([p.faces + o for p, o in zip(pieces, offsets)]), uv=uv,
-                   material=pieces[int(np.argmax(areas))].material)
+                   material=tuple(materials), face_material=np.concatenate(face_material).astype(np.int32))
 
 
 def load_house(path: Path, options: LoadOptions) -> House:

@@ -157,18 +157,23 @@ class _Builder:
         if target == SHELL:
             part = split_shell(v, faces)
             uv = None if mesh.uv is None or len(mesh.uv) != len(v) else np.asarray(mesh.uv)
+            args = mesh.instance_args()
             for k, name in enumerate(PARTS):
-                if (part == k).any():  # each part keeps the vertices its faces use
-                    used, f = np.unique(faces[part == k], return_inverse=True)
+                keep = part == k
+                if keep.any():  # each part keeps the vertices its faces use, and their materials
+                    used, f = np.unique(faces[keep], return_inverse=True)
+                    part_args = {**args, "colors": None if args["colors"] is None else np.asarray(args["colors"])[used],
+                                 "face_material": None if args["face_material"] is None
+                                 else np.asarray(args["face_material"])[keep]}
                     self._add(f"{clean}/{name}", NYU40_IDS[name], label, v[used], f.reshape(-1, 3),
-                              mesh, None if uv is None else uv[used])
+                              None if uv is None else uv[used], part_args)
             return
         category = resolve(self.house, label, target, strict=self.options.strict, file=self.path)
-        self._add(clean, category, label, v, faces, mesh, mesh.uv)
+        self._add(clean, category, label, v, faces, mesh.uv, mesh.instance_args())
 
-    def _add(self, name: str, category: int, label: str, v: np.ndarray, faces: np.ndarray, mesh: Mesh, uv) -> None:
+    def _add(self, name: str, category: int, label: str, v: np.ndarray, faces: np.ndarray, uv, material_args) -> None:
         make_instance(self.house, name=name, category=category, label=label, room_id=None,
-                      vertices=v, faces=faces, file=self.path, material=mesh.material, uv=uv)
+                      vertices=v, faces=faces, file=self.path, uv=uv, **material_args)
 
 
 def _load(source: HouseSource, options: LoadOptions) -> House:

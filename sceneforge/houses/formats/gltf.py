@@ -2,8 +2,10 @@
 
 Reading: one mesh per node that has triangles, in depth-first node order, node transforms
 applied (a mirroring transform reverses the winding); the primitives of a node's mesh are
-merged into one mesh with the material covering the most area. Triangle lists, strips
-and fans are read; points and lines are skipped.
+merged into one mesh whose face groups keep each primitive's material (base-colour factor
+× base-colour texture, with the texture's sampler wrapping; one group per distinct
+material, in primitive order); ``COLOR_0`` vertex colours (linear) multiply it. Triangle
+lists, strips and fans are read; points and lines are skipped.
 
 glTF is read here rather than with ``trimesh.load``: trimesh renames the primitives of a
 multi-primitive mesh with random suffixes and keeps textures only as decoded images, while
@@ -31,7 +33,6 @@ from .meshio import (
     Mesh,
     MeshFileError,
     Warn,
-    face_areas,
     fan,
     find_image,
     ignore,
@@ -48,6 +49,7 @@ GLB_MAGIC, GLB_JSON, GLB_BIN = b"glTF", 0x4E4F534A, 0x004E4942
 _COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 _TRIANGLES, _STRIP, _FAN = 4, 5, 6
+_WRAPS = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
 _UNSUPPORTED_REQUIRED = {"KHR_draco_mesh_compression", "EXT_meshopt_compression", "KHR_meshopt_compression"}
 
 
@@ -204,8 +206,15 @@ class _Gltf:
                 self.materials[index] = Material(
                     base_color=tuple(float(c) for c in color),
                     texture=self.texture(tex["index"]) if tex else None,
+                    wrap=self.wrap(tex["index"]) if tex else ("repeat", "repeat"),
                 )
         return self.materials[index]
+
+    def wrap(self, index: int) -> tuple[str, str]:
+        """(s, t) wrapping of texture ``index`` from its sampler (glTF's default: repeat)."""
+        sampler = self.item("textures", index).get("sampler")
+        spec = self.item("samplers", sampler) if sampler is not None else {}
+        return tuple(_WRAPS.get(spec.get(k, 10497), "repeat") for k in ("wrapS", "wrapT"))
 
     def texture(self, index: int):
         """Image of texture ``index``: a Path, a PIL image (embedded), or None (with a warning).
@@ -241,7 +250,8 @@ class _Gltf:
         return self.images[index]
 
     def primitive(self, mesh_name: str, k: int, prim: dict):
-        """Vertices (n, 3) float64, faces (m, 3) int64, uv (n, 2) or None of one primitive."""
+        """Vertices (n, 3) float64, faces (m, 3) int64, uv (n, 2) or None and linear RGBA
+        vertex colours (n, 4) or None of one primitive."""
         mode = prim.get("mode", _TRIANGLES)
         if mode not in (_TRIANGLES, _STRIP, _FAN):
             return None
@@ -273,7 +283,14 @@ class _Gltf:
         if "TEXCOORD_0" in prim["attributes"]:
             uv = self.accessor(prim["attributes"]["TEXCOORD_0"]).astype(np.float64)
             uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]]) if uv.shape == (len(vertices), 2) else None
-        return vertices, faces, uv
+        colors = None
+        if "COLOR_0" in prim["attributes"]:
+            colors = self.accessor(prim["attributes"]["COLOR_0"]).astype(np.float64)
+            if colors.shape == (len(vertices), 3):
+                colors = np.column_stack([colors, np.ones(len(colors))])
+            if colors.shape != (len(vertices), 4):
+                colors = None
+        return vertices, faces, uv, colors
 
     def node_meshes(self):
         """Yield (node name, mesh name, world matrix (4, 4) float64, mesh dict), depth-first."""
@@ -326,7 +343,7 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
     """Yield the meshes of a glTF/GLB scene (module docs), named after their nodes.
 
     Raises :class:`MeshFileError` for anything unreadable; ``warn`` receives what was
-    tolerated (a missing texture image, several materials in one mesh).
+    tolerated (a missing texture image).
     """
     try:
         gltf = _Gltf(Path(path), warn)
@@ -339,14 +356,16 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
             vertices = np.concatenate([g[0] for _, g in parts])
             faces = np.concatenate([g[1] + o for (_, g), o in zip(parts, offsets[:-1], strict=True)])
             uv = np.concatenate([g[2] for _, g in parts]) if all(g[2] is not None for _, g in parts) else None
-            # An instance has one material: keep the one that covers the most surface.
-            areas = [face_areas(g[0], g[1]).sum() for _, g in parts]
-            materials = {p.get("material") for p, _ in parts}
-            if len(materials) > 1:
-                warn(f"mesh {mesh_name!r}: {len(materials)} materials, kept the one covering the most area")
-            material = gltf.material(parts[int(np.argmax(areas))][0].get("material"))
+            colors = None
+            if any(g[3] is not None for _, g in parts):
+                colors = np.concatenate([g[3] if g[3] is not None else np.ones((len(g[0]), 4)) for _, g in parts])
+            keys = list(dict.fromkeys(p.get("material") for p, _ in parts))
+            materials = tuple(gltf.material(key) for key in keys)
+            face_material = np.concatenate([np.full(len(g[1]), keys.index(p.get("material")), np.int32)
+                                            for p, g in parts])
             vertices, faces = place(vertices, faces, world)
-            yield Mesh(vertices, faces, uv, material, node_name, (mesh_name,))
+            yield Mesh(vertices, faces, uv, materials[0] if len(materials) == 1 else materials, node_name,
+                       (mesh_name,), face_material if len(materials) > 1 else None, colors)
     except MeshFileError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:

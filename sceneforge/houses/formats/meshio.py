@@ -39,17 +39,38 @@ class Mesh:
     faces    : (m, 3) int64    indices into ``vertices``, counter-clockwise seen from outside
     uv       : (n, 2) float    texture coordinates as :class:`~sceneforge.houses.model.Instance`
                has them (v = 0 at the image bottom), or None
-    material : the mesh's one material, or None for the default
+    material : the mesh's one material, None for the default, or the materials (a tuple) of
+               its face groups that ``face_material`` assigns
     name     : the object/node name in the file ("" when it has none)
     aliases  : further names its category may be looked up by (a glTF node's mesh name)
+    face_material : (m,) int32  each face's index into the ``material`` tuple, or None
+    colors   : (n, 4) float32  linear RGBA per vertex multiplying the material, or None
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     uv: np.ndarray | None = None
-    material: Material | None = None
+    material: Material | tuple[Material, ...] | None = None
     name: str = ""
     aliases: tuple[str, ...] = ()
+    face_material: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+    @property
+    def materials(self) -> tuple[Material, ...]:
+        """The materials of the face groups (one for a one-material mesh)."""
+        m = self.material
+        return m if isinstance(m, tuple) else (m or Material(),)
+
+    def face_materials(self) -> np.ndarray:
+        """(m,) int32 each face's index into :attr:`materials`."""
+        if self.face_material is None:
+            return np.zeros(len(self.faces), np.int32)
+        return np.asarray(self.face_material, np.int32)
+
+    def instance_args(self) -> dict:
+        """The material keywords of :func:`~sceneforge.houses.model.make_instance` for this mesh."""
+        return {"material": self.material, "face_material": self.face_material, "colors": self.colors}
 
 
 def ignore(message: str) -> None:

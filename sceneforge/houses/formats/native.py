@@ -2,7 +2,11 @@
 
 The JSON is described by ``schemas/house.schema.json``; each instance points at byte
 ranges of the buffer: vertices ``(n, 3) float64``, faces ``(m, 3) uint32`` and optional
-uv ``(n, 2) float32``. Writing is deterministic: the same house gives the same bytes.
+uv ``(n, 2) float32``; an instance of several materials has ``materials`` and face
+materials ``(m,) uint32`` instead of one ``material``, and vertex colours ``(n, 4) float32``
+when it has them. A one-material instance is written as before the face groups existed, so
+old files and new ones of such houses are the same. Writing is deterministic: the same
+house gives the same bytes.
 """
 
 from __future__ import annotations
@@ -69,9 +73,9 @@ def write_house(house: House, out_dir: str | Path) -> Path:
         return ref
 
     textures: dict[int, str] = {}
-    records = []
-    for inst in house.instances:
-        tex = inst.material.texture
+
+    def material(m: Material) -> dict:
+        tex = m.texture
         if tex is not None and id(tex) not in textures:
             name = Path(tex).name if isinstance(tex, (str, Path)) else "embedded.png"
             textures[id(tex)] = f"textures/{len(textures):04d}_{name}"
@@ -80,7 +84,15 @@ def write_house(house: House, out_dir: str | Path) -> Path:
                 shutil.copyfile(tex, out / textures[id(tex)])
             else:
                 tex.save(out / textures[id(tex)])
-        records.append({
+        record = {"base_color": [float(c) for c in m.base_color],
+                  "texture": textures[id(tex)] if tex is not None else None}
+        if tuple(m.wrap) != Material().wrap:
+            record["wrap"] = list(m.wrap)
+        return record
+
+    records = []
+    for inst in house.instances:
+        record = {
             "name": inst.name,
             "category": NYU40_NAMES[inst.category],
             "label": inst.label,
@@ -88,11 +100,15 @@ def write_house(house: House, out_dir: str | Path) -> Path:
             "vertices": put(inst.vertices, "float64"),
             "faces": put(inst.faces, "uint32"),
             "uv": None if inst.uv is None else put(inst.uv, "float32"),
-            "material": {
-                "base_color": [float(c) for c in inst.material.base_color],
-                "texture": textures[id(tex)] if tex is not None else None,
-            },
-        })
+        }
+        if inst.face_material is None:
+            record["material"] = material(inst.materials[0])
+        else:
+            record["materials"] = [material(m) for m in inst.materials]
+            record["face_material"] = put(inst.face_material, "uint32")
+        if inst.colors is not None:
+            record["colors"] = put(inst.colors, "float32")
+        records.append(record)
     doc = {
         "format": FORMAT_TAG,
         "schema_version": SCHEMA_VERSION,
@@ -150,8 +166,7 @@ def load_house(path: str | Path, *, strict: bool = False) -> House:
         cid = nyu40_id(rec["category"])
         if cid is None:
             raise HouseError(house.id, path, f"instance {rec['name']!r}: unknown NYU40 class {rec['category']!r}")
-        mat = rec.get("material") or {}
-        tex = mat.get("texture")
+        materials = [_material(m, path) for m in rec.get("materials") or [rec.get("material") or {}]]
         make_instance(
             house,
             name=rec["name"],
@@ -162,12 +177,19 @@ def load_house(path: str | Path, *, strict: bool = False) -> House:
             faces=get(rec["faces"], "uint32", 3),
             uv=get(rec.get("uv"), "float32", 2),
             file=path,
-            material=Material(
-                base_color=tuple(mat.get("base_color", (0.8, 0.8, 0.8, 1.0))),
-                texture=(path.parent / tex) if tex else None,
-            ),
+            material=materials if len(materials) > 1 else materials[0],
+            face_material=get(rec.get("face_material"), "uint32", 1),
+            colors=get(rec.get("colors"), "float32", 4),
         )
     return house.check_not_empty()
+
+
+def _material(record: dict, path: Path) -> Material:
+    """The :class:`Material` of a material record of the house file at ``path``."""
+    tex = record.get("texture")
+    return Material(base_color=tuple(record.get("base_color", (0.8, 0.8, 0.8, 1.0))),
+                    texture=(path.parent / tex) if tex else None,
+                    wrap=tuple(record.get("wrap", Material().wrap)))
 
 
 FORMAT = Format("sceneforge", detect=is_native, list=list_houses, load=_load)

@@ -12,8 +12,10 @@ rest (normals, lines, smoothing groups):
   new vertex after the others (a uv seam), so vertices keep their file order.
 - Materials come from the ``mtllib`` files: ``Kd``, ``d`` (or ``Tr``) and ``map_Kd``
   (options before the image name are skipped; a missing image may be replaced by its
-  ``.png``/``.jpg`` twin). A mesh has one material: of those its faces name with
-  ``usemtl``, the one covering the most area.
+  ``.png``/``.jpg`` twin). A mesh keeps every material its faces name with ``usemtl``, as
+  face groups in order of first use (``Mesh.face_material``); faces before any ``usemtl``
+  get the default material. ``Kd`` multiplies ``map_Kd`` (SUNCG tints textures with it).
+  Textures repeat outside [0, 1] (``-clamp on`` clamps them).
 - Malformed content raises :class:`~sceneforge.houses.formats.meshio.MeshFileError` with the line.
 
 trimesh is not used: it splits meshes per material, packs textures into one atlas and
@@ -37,7 +39,6 @@ from .meshio import (
     MeshFileError,
     Warn,
     compact,
-    face_areas,
     fan,
     find_image,
     ignore,
@@ -55,8 +56,7 @@ def read_obj(path: str | Path, warn: Warn = ignore) -> Mesh:
 
     Its vertices are all the file's vertices in file order (uv seams appended), so that
     the file's face indices stay valid. Raises :class:`MeshFileError` for malformed
-    content; ``warn`` receives what was tolerated (a missing library or texture, several
-    materials).
+    content; ``warn`` receives what was tolerated (a missing library, material or texture).
     """
     path = Path(path)
     obj = _parse(path, warn)
@@ -119,7 +119,7 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
         key, rest = parts[0], parts[1].strip() if len(parts) > 1 else ""
         try:
             if key == "newmtl":
-                current = found.setdefault(rest, {"kd": _DEFAULT_KD, "alpha": 1.0, "map": None})
+                current = found.setdefault(rest, {"kd": _DEFAULT_KD, "alpha": 1.0, "map": None, "clamp": False})
             elif current is None:
                 continue
             elif key == "Kd":
@@ -132,6 +132,8 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
             elif key == "map_Kd" and rest:
                 # Options (-s 1 1 1, -bm 0.5, ...) come first; the file name is the rest.
                 whole = path.parent / rest
+                words = rest.split()
+                current["clamp"] = any(w == "-clamp" and words[k + 1:k + 2] == ["on"] for k, w in enumerate(words))
                 current["map"] = whole if whole.is_file() else path.parent / rest.split()[-1]
         except (ValueError, IndexError):
             warn(f"{path.name}: cannot read line {line.strip()!r}")
@@ -139,6 +141,7 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
         name: Material(
             base_color=tuple(float(c) for c in np.clip([*m["kd"], m["alpha"]], 0.0, 1.0)),
             texture=find_image(m["map"], warn, warn_missing=True) if m["map"] else None,
+            wrap=("clamp", "clamp") if m["clamp"] else ("repeat", "repeat"),
         )
         for name, m in found.items()
     }
@@ -333,7 +336,7 @@ def _face(rest: str, nv: int, nvt: int, line: int, i: int):
 def _mesh(obj: _Obj, triangles: np.ndarray, name: str, vertices: np.ndarray, faces: np.ndarray,
           warn: Warn) -> Mesh:
     """The mesh of some of ``obj``'s triangles (indices (m,)), given as ``faces`` (m, 3) into
-    ``vertices`` (n, 3): uv when every corner has one, the material covering the most area."""
+    ``vertices`` (n, 3): uv when every corner has one, a face group per material."""
     tex = obj.tri_t[triangles]
     uv = None
     if len(obj.uvs) and len(tex) and (tex != _NO_UV).all():
@@ -344,18 +347,24 @@ def _mesh(obj: _Obj, triangles: np.ndarray, name: str, vertices: np.ndarray, fac
                 f"line {obj.f_lines[obj.tri_line[triangles[row]]]}: texture index "
                 f"{int(tex[row][bad[row]][0]) + 1} is outside the {len(obj.uvs)} texture coordinates")
         vertices, faces, uv = _split_seams(vertices, faces, tex, obj.uvs)
-    # area of each usemtl name; faces before any usemtl have none and do not compete
+    # one face group per usemtl name its faces use, in order of first use; faces before any
+    # usemtl (or naming a material no library has) get the default material
     named = obj.line_mtl[obj.tri_line[triangles]]
-    area = np.bincount(named[named >= 0], weights=face_areas(vertices, faces)[named >= 0],
-                       minlength=len(obj.mtl_names))
-    if (area > 0).sum() > 1:
-        warn(f"object {name!r}: {(area > 0).sum()} materials, kept the one covering the most area")
-    if not area.any():
+    if not len(named) or (named < 0).all():
         return Mesh(vertices, faces, uv, None, name)
-    best = obj.mtl_names[int(np.argmax(area))]
-    if best not in obj.materials:
-        warn(f"material {best!r} is not in any material library; default colour")
-    return Mesh(vertices, faces, uv, obj.materials.get(best), name)
+    used, first, group = np.unique(named, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    materials = []
+    for code in used[order]:
+        material = obj.materials.get(obj.mtl_names[code]) if code >= 0 else None
+        if code >= 0 and material is None:
+            warn(f"material {obj.mtl_names[code]!r} is not in any material library; default colour")
+        materials.append(material or Material())
+    if len(materials) == 1:
+        return Mesh(vertices, faces, uv, materials[0], name)
+    return Mesh(vertices, faces, uv, tuple(materials), name, face_material=rank[group.reshape(-1)].astype(np.int32))
 
 
 def _split_seams(vertices: np.ndarray, faces: np.ndarray, tex: np.ndarray, uvs: np.ndarray):

@@ -4,9 +4,10 @@ Reading: one mesh per value of a per-face (else per-vertex: a face takes its fir
 corner's) ``instance``, ``instance_id``, ``object_id`` or ``obj_id`` property, in
 increasing order; without such a property, one mesh. Names come from ``comment instance
 <value> <name>`` header lines, else the file stem (with ``_<value>`` when there are
-several). Polygons are fanned; per-face or per-vertex colours give the material (the most
-frequent colour of a mesh), ``s``/``t`` (or ``u``/``v``) the uv, a ``comment TextureFile``
-the texture.
+several). Polygons are fanned; per-face colours give face groups (one material per
+distinct colour, in order of first use), per-vertex colours the mesh's vertex colours (on a
+white material); both are read as linear RGBA, bytes / 255. ``s``/``t`` (or ``u``/``v``)
+give the uv, a ``comment TextureFile`` the texture.
 """
 
 from __future__ import annotations
@@ -221,16 +222,23 @@ def read_ply(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
         key = f"{value:g}" if values.dtype.kind == "f" else str(value)
         name = names.get(key) or (path.stem if len(values) == 1 else f"{path.stem}_{key}")
         used, local = compact(faces[sel])
-        material = None
-        if colors is not None:
-            rows = colors[source[sel]] if per_face else colors[used]
-            if not (rows == rows[0]).all():  # several colours: the most frequent one
-                unique, counts = np.unique(rows, axis=0, return_counts=True)
-                rows = unique[np.argmax(counts)][None]
-            material = Material(base_color=tuple(float(c) for c in rows[0]), texture=texture)
+        material, face_material, vertex_colors = None, None, None
+        if colors is not None and per_face:
+            unique, first, group = np.unique(colors[source[sel]], axis=0, return_index=True, return_inverse=True)
+            order = np.argsort(first, kind="stable")
+            rank = np.empty_like(order)
+            rank[order] = np.arange(len(order))
+            material = tuple(Material(base_color=tuple(float(c) for c in unique[k]), texture=texture) for k in order)
+            if len(material) == 1:
+                material = material[0]
+            else:
+                face_material = rank[group.reshape(-1)].astype(np.int32)
+        elif colors is not None:
+            material, vertex_colors = Material(base_color=(1.0, 1.0, 1.0, 1.0), texture=texture), colors[used]
         elif texture is not None:
             material = Material(texture=texture)
-        yield Mesh(vertices[used], local, None if uv is None else uv[used], material, name)
+        yield Mesh(vertices[used], local, None if uv is None else uv[used], material, name,
+                   face_material=face_material, colors=vertex_colors)
 
 
 def _ply_colors(face: dict, vertex: dict) -> tuple[np.ndarray | None, bool]:

@@ -198,7 +198,8 @@ class _Reader:
     def add(self, name, category, label, room_id, mesh: Mesh, matrix, file, material=None):
         v, f = place(mesh.vertices, mesh.faces, matrix)
         make_instance(self.house, name=name, category=category, label=label, room_id=room_id,
-                      vertices=v, faces=f, uv=mesh.uv, file=file, material=material or mesh.material)
+                      vertices=v, faces=f, uv=mesh.uv, file=file,
+                      **({"material": material} if material is not None else mesh.instance_args()))
 
     # ---- node types ----
 

@@ -1,4 +1,4 @@
-"""Offscreen RGB (and z-buffer depth) of house views with pyrender through EGL (SPEC §8).
+"""Rasterised RGB (and z-buffer depth) of house views with pyrender through EGL (SPEC §8).
 
 The only module that touches OpenGL. One :class:`Renderer` per worker process renders
 every view of every house: it keeps the GL scene of the current house and rebuilds it,
@@ -15,14 +15,25 @@ renders single-sampled instead, so every RGB pixel shows the surface that the ra
 its centre hits first (``antialias=True`` restores pyrender's 4× multisampling).
 Every face is drawn from both sides, like the ray tracer sees it.
 
-Look. Materials (``Instance.material``: linear RGBA base colour, optional texture sampled
-with ``Instance.uv``) from every loader, opaque: alpha is ignored, as the depth layers see
-glass too. Lighting is deterministic and baked into vertex colours once per house
-(:func:`shade_house`): an ambient term plus one point light under the ceiling centre of
-each room (its extent from its instances), lighting only that room's instances, with the
-Lambert term of either side of a face (so back faces are lit too) and ``1/d²`` falloff.
-The same view always gives the same pixels on the same machine; different GL drivers can
-differ by rounding.
+Look. Every face group of every instance is drawn with its own material
+(``Instance.materials``): linear base colour × the sRGB texture decoded to linear (with
+the material's wrapping, bilinear and mipmapped) × the vertex colours, opaque (alpha is
+ignored, as the depth layers see glass too). Shading is per pixel, by pyrender's shader with the
+house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room) and
+an ambient term. The shader is pyrender's own with four changes made when it is loaded
+(:func:`_mesh_shader`): Lambertian (the houses' materials are diffuse colours, and the
+path tracer shades them so too), a face seen from behind is shaded with its normal turned to the
+viewer (faces have no consistent winding in real houses), no light is nearer than
+``light_min_distance``, and the output is exactly sRGB-encoded (pyrender uses γ = 2.2).
+A room's geometry is one pyrender mesh lit by that room's lights only (up to
+:data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
+walls, and every fragment evaluates only its room's few lights.
+Shadows (``RenderConfig.shadows``) come from shadow maps of the spot lights (windows);
+point lights cast none (pyrender has no point-light shadows).
+
+The same view always gives the same bytes on the same machine (GL and driver); across
+GPUs and drivers, shading and texture filtering may differ by a few levels of 8-bit
+rounding, while which surface each pixel shows (depth, silhouettes) does not.
 
 Devices. ``gpu=None`` picks ``$EGL_DEVICE_ID`` when set, else the first EGL device backed
 by a DRM device (a GPU), else the first one (Mesa's software llvmpipe device). A missing
@@ -32,8 +43,11 @@ naming what to install.
 
 from __future__ import annotations
 
+import atexit
 import functools
 import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -41,20 +55,22 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .cameras import opencv_to_opengl
-from .errors import HouseError, MissingDependencyError, SceneforgeError
+from ..cameras import opencv_to_opengl
+from ..errors import HouseError, MissingDependencyError, SceneforgeError
+from .lights import Light, house_lights, room_bounds
 
 if TYPE_CHECKING:
-    from .cameras import Camera
-    from .houses.model import House
+    from ..cameras import Camera
+    from ..houses.model import House
 
 #: near and far clipping planes, metres. With a 24-bit depth buffer the depth resolution
 #: is about z² / (NEAR · 2²⁴): 0.1 mm at 10 m. Surfaces nearer than NEAR to the camera are
 #: clipped; FAR is beyond any house.
 NEAR, FAR = 0.05, 1000.0
-#: display gamma of the rendered images (vertex colours are gamma-encoded: the flat shader
-#: multiplies them with sRGB texels, and (a·b)^(1/γ) = a^(1/γ) · b^(1/γ))
-GAMMA = 2.2
+#: lights of each kind (point, spot) that light one room's geometry
+MAX_LIGHTS = 8
+#: pyrender's diffuse term is the base colour × (1 - 0.04) / π per unit of light
+_DIFFUSE = (1.0 - 0.04) / np.pi
 
 INSTALL_RENDER = "pip install 'sceneforge[render]'"
 #: Debian/Ubuntu packages of libEGL and Mesa's EGL driver with its software rasteriser
@@ -68,18 +84,24 @@ class RenderConfig:
 
     #: ambient light: the fraction of its base colour that every surface shows unlit
     ambient: float = 0.3
-    #: strength of each room's light: a surface facing it at the room's farthest corner
-    #: receives this much (1/d² falloff, so nearer surfaces receive more)
+    #: strength of each lamp and each room's fallback light: a surface facing it at the
+    #: room's farthest corner shows this fraction of its base colour (1/d² falloff, so
+    #: nearer surfaces show more)
     light: float = 0.25
-    #: the room light hangs this far below the top of its room's bounds, metres
+    #: strength of each window's light, as ``light`` (0: windows give no light)
+    window_light: float = 0.15
+    #: the fallback light of a room without lamps hangs this far below the top of its
+    #: room's bounds, metres
     light_below_ceiling: float = 0.3
     #: nearer than this, a surface receives the light of this distance, metres
     light_min_distance: float = 0.3
+    #: shadows of the window lights (shadow maps; point lights cast none)
+    shadows: bool = False
     #: sRGB colour (0..1) of pixels that see nothing
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
-        for name in ("ambient", "light", "light_below_ceiling"):
+        for name in ("ambient", "light", "window_light", "light_below_ceiling"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.light_min_distance > 0:
@@ -90,68 +112,43 @@ class RenderConfig:
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
 
 
+def srgb_to_linear(c):
+    """Linear values of sRGB-encoded values in [0, 1] (IEC 61966-2-1)."""
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c):
+    """sRGB-encoded values of linear values in [0, 1] (IEC 61966-2-1)."""
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
 # ---------------------------------------------------------------------------------------
-# Baked lighting: pure numpy, no GL
-
-
-@dataclass(frozen=True)
-class RoomLight:
-    """The point light of one room.
-
-    position  : (3,) float64  world, metres
-    intensity : float         irradiance at 1 m facing the light
-    """
-
-    position: np.ndarray
-    intensity: float
+# The house as draw batches: pure numpy, no GL
 
 
 @dataclass(frozen=True, eq=False)
 class Batch:
-    """Triangles of a house that share one texture (or none), lighting baked in.
+    """The triangles of one room that share one material (texture, wrapping and colour).
 
-    positions : (3m, 3) float32  world, three unshared corners per triangle
-    colors    : (3m, 4) float32  gamma-encoded RGBA multiplier (alpha 1): base colour × light
+    room      : the ``Instance.room_id`` of its instances
+    origin    : (3,) float64   world position of the batch's mesh node (its room's centre)
+    positions : (3m, 3) float32  relative to ``origin``, three unshared corners per triangle
+    normals   : (3m, 3) float32  the face normal at each corner (flat shading)
+    colors    : (3m, 4) float32  linear vertex colours, or None
     uv        : (3m, 2) float32  texture coordinates (OpenGL convention), or None
-    texture   : the ``Material.texture`` (path or PIL image) these triangles sample, or None
+    material  : the :class:`~sceneforge.houses.model.Material` (its texture None when the
+                batch has no uv)
     """
 
+    room: str | None
+    origin: np.ndarray
     positions: np.ndarray
-    colors: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray | None
     uv: np.ndarray | None
-    texture: object | None
-
-
-def room_lights(house: "House", config: RenderConfig | None = None) -> dict[str | None, RoomLight]:
-    """One light per room (per ``Instance.room_id``; None groups the instances of no room).
-
-    The light hangs ``light_below_ceiling`` under the centre of the top of the bounds of the
-    room's instances (no lower than their middle height). Its intensity makes a surface that
-    faces it at the farthest corner of those bounds receive ``config.light``.
-    """
-    config = config or RenderConfig()
-    bounds: dict[str | None, np.ndarray] = {}
-    for inst in house.instances:
-        lo, hi = inst.vertices.min(0), inst.vertices.max(0)
-        b = bounds.get(inst.room_id)
-        bounds[inst.room_id] = np.stack([lo, hi]) if b is None else np.stack([np.minimum(b[0], lo),
-                                                                             np.maximum(b[1], hi)])
-    lights = {}
-    for room, (lo, hi) in bounds.items():
-        centre = 0.5 * (lo + hi)
-        position = np.array([centre[0], max(hi[1] - config.light_below_ceiling, centre[1]), centre[2]])
-        corners = np.stack(np.meshgrid(*zip(lo, hi), indexing="ij"), -1).reshape(-1, 3)
-        reach2 = max(float(((corners - position) ** 2).sum(1).max()), config.light_min_distance ** 2)
-        lights[room] = RoomLight(position, config.light * reach2)
-    return lights
-
-
-def _irradiance(points, normals, light: RoomLight, min_distance: float) -> np.ndarray:
-    """(n,) float64 light that (n, 3) points with unit (n, 3) normals receive, either side."""
-    to_light = light.position - points
-    d2 = np.einsum("ij,ij->i", to_light, to_light)
-    cos = np.abs(np.einsum("ij,ij->i", normals, to_light)) / np.sqrt(np.maximum(d2, 1e-300))
-    return light.intensity * cos / np.maximum(d2, min_distance ** 2)
+    material: object
 
 
 def _texture_key(texture) -> object:
@@ -163,38 +160,37 @@ def _texture_key(texture) -> object:
     return id(texture)
 
 
-def shade_house(house: "House", config: RenderConfig | None = None) -> list[Batch]:
-    """The house's triangles with lighting baked into vertex colours, one batch per texture.
+def house_batches(house: "House") -> list["Batch"]:
+    """The house's face groups as draw batches: per room (in order of first instance), one
+    per distinct material (in order of first use); instances without vertex colours and
+    with them are apart. An instance with a texture but no ``uv`` is drawn with its base
+    colour only."""
+    from dataclasses import replace
 
-    Each triangle gets its own three corners (flat shading). A corner's colour is
-    ``(base_rgb · (ambient + light)) ** (1 / GAMMA)`` clipped to [0, 1], where ``light`` is
-    :func:`_irradiance` from its room's :class:`RoomLight` with the face normal. Batches come
-    in the order their texture first appears in ``house.instances`` (untextured: None);
-    an instance with a texture but no ``uv`` is drawn with its base colour only.
-    """
-    config = config or RenderConfig()
-    lights = room_lights(house, config)
-    parts: dict[object, tuple[object, list, list, list]] = {}
+    centres = {room: 0.5 * (b[0] + b[1]) for room, b in room_bounds(house).items()}
+    parts: dict[tuple, tuple[object, list, list, list, list]] = {}
     for inst in house.instances:
         tri = inst.vertices[inst.faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-        points = tri.reshape(-1, 3)
-        light = config.ambient + _irradiance(points, np.repeat(normal, 3, axis=0), lights[inst.room_id],
-                                             config.light_min_distance)
-        base = np.clip(np.asarray(inst.material.base_color[:3], dtype=np.float64), 0.0, 1.0)
-        colors = np.ones((len(points), 4), dtype=np.float32)
-        colors[:, :3] = np.clip(light[:, None] * base, 0.0, 1.0) ** (1.0 / GAMMA)
-        texture = inst.material.texture if inst.uv is not None else None
-        key = _texture_key(texture)
-        entry = parts.setdefault(key, (texture, [], [], []))
-        entry[1].append(points.astype(np.float32))
-        entry[2].append(colors)
-        if texture is not None:
-            entry[3].append(inst.uv[inst.faces].reshape(-1, 2).astype(np.float32))
+        group = inst.face_materials()
+        for g, material in enumerate(inst.materials):
+            faces = np.flatnonzero(group == g) if len(inst.materials) > 1 else slice(None)
+            if inst.uv is None and material.texture is not None:
+                material = replace(material, texture=None)
+            key = (inst.room_id, tuple(float(c) for c in material.base_color), _texture_key(material.texture),
+                   tuple(material.wrap) if material.texture is not None else None, inst.colors is not None)
+            entry = parts.setdefault(key, (material, [], [], [], []))
+            entry[1].append((tri[faces] - centres[inst.room_id]).reshape(-1, 3).astype(np.float32))
+            entry[2].append(np.repeat(normal[faces], 3, axis=0).astype(np.float32))
+            if inst.colors is not None:
+                entry[3].append(inst.colors[inst.faces[faces]].reshape(-1, 4))
+            if material.texture is not None:
+                entry[4].append(inst.uv[inst.faces[faces]].reshape(-1, 2).astype(np.float32))
     return [
-        Batch(np.concatenate(p), np.concatenate(c), np.concatenate(uv) if tex is not None else None, tex)
-        for tex, p, c, uv in parts.values()
+        Batch(key[0], centres[key[0]], np.concatenate(p), np.concatenate(n),
+              np.concatenate(c).astype(np.float32) if c else None, np.concatenate(uv) if uv else None, material)
+        for key, (material, p, n, c, uv) in parts.items()
     ]
 
 
@@ -209,6 +205,49 @@ def _texels(house: "House", texture) -> np.ndarray:
         except (OSError, ValueError) as e:
             raise HouseError(house.id, str(texture), f"cannot read texture ({e})") from None
     return np.asarray(texture.convert("RGB"))
+
+
+# ---------------------------------------------------------------------------------------
+# The shader
+
+#: pyrender's mesh.frag text → sceneforge's (see the module docstring); each must occur once
+_SHADER_PATCHES = (
+    ("        vec3 diffuse_contrib = (1.0 - F) * c_diff / PI;\n        vec3 spec_contrib = F * G * D / (4.0 * nl * nv + 0.001);\n",
+     "        vec3 diffuse_contrib = c_diff / PI;\n        vec3 spec_contrib = vec3(0.0);\n"),
+    ("    vec3 n = normalize(get_normal());\n",
+     "    vec3 n = normalize(get_normal());\n    if (!gl_FrontFacing) n = -n;\n"),
+    ("        float dist = length(position - frag_position);\n",
+     "        float dist = max(length(position - frag_position), LIGHT_MIN_DISTANCE);\n"),
+    ("    frag_color = clamp(vec4(pow(color.xyz, vec3(1.0/2.2)), color.a * base_color.a), 0.0, 1.0);\n",
+     "    vec3 c = clamp(color.xyz, 0.0, 1.0);\n"
+     "    vec3 srgb = mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));\n"
+     "    frag_color = vec4(srgb, 1.0);\n"),
+)
+
+
+@functools.cache
+def _shader_dir() -> Path:
+    """A folder of this process for the patched shaders (removed at exit)."""
+    path = Path(tempfile.mkdtemp(prefix="sceneforge-shaders-"))
+    atexit.register(shutil.rmtree, path, ignore_errors=True)
+    return path
+
+
+@functools.cache
+def _mesh_shader(min_distance: float) -> str:
+    """Path of pyrender's mesh.frag with :data:`_SHADER_PATCHES` applied."""
+    import pyrender
+
+    text = (Path(pyrender.__file__).parent / "shaders" / "mesh.frag").read_text()
+    for old, new in _SHADER_PATCHES:
+        if text.count(old) != (2 if "dist" in old else 1):
+            raise SceneforgeError(f"pyrender {pyrender.__version__}'s mesh.frag is not the one sceneforge "
+                                  f"patches (install pyrender 0.1.45): no {old.strip()!r}")
+        text = text.replace(old, new)
+    text = text.replace("#version 330 core\n", f"#version 330 core\n#define LIGHT_MIN_DISTANCE {min_distance!r}\n", 1)
+    path = _shader_dir() / f"mesh_{len(list(_shader_dir().iterdir()))}.frag"
+    path.write_text(text)
+    return str(path)
 
 
 # ---------------------------------------------------------------------------------------
@@ -247,9 +286,28 @@ def _gl() -> SimpleNamespace:
         valid); the blit is then an exact copy.
         """
 
-        def __init__(self, width: int, height: int, samples: int):
+        def __init__(self, width: int, height: int, samples: int, mesh_shader: str):
             super().__init__(width, height)
             self.samples = samples
+            self._program_cache = ShaderCache(mesh_shader)
+            self._lit: dict = {}  # program → (scene, mesh node) whose lights it has
+
+        def _bind_lighting(self, scene, program, node, flags):
+            # Light uniforms depend on the scene and the mesh node only, and stay set in a
+            # program: pyrender sets them again for every primitive of every frame, which is
+            # most of a frame's time in Python. Shadow maps take texture units per primitive.
+            shadows = flags & (pyrender.RenderFlags.SHADOWS_SPOT | pyrender.RenderFlags.SHADOWS_DIRECTIONAL)
+            key = (scene, node)
+            if not shadows and self._lit.get(program) == key:
+                return
+            super()._bind_lighting(RoomLights(scene, node), program, node, flags)
+            self._lit[program] = None if shadows else key
+
+        def _compute_max_n_lights(self, flags):
+            # pyrender's 4 lights per kind are a texture-unit budget for shadow maps only
+            counts = super()._compute_max_n_lights(flags)
+            spot_shadows = flags & pyrender.RenderFlags.SHADOWS_SPOT
+            return [counts[0], counts[1] if spot_shadows else MAX_LIGHTS, MAX_LIGHTS]
 
         def _configure_main_framebuffer(self):
             fresh = self._main_fb_dims != (self.viewport_width, self.viewport_height)
@@ -260,6 +318,49 @@ def _gl() -> SimpleNamespace:
                     GL.glRenderbufferStorageMultisample(
                         GL.GL_RENDERBUFFER, self.samples, fmt, self.viewport_width, self.viewport_height
                     )
+
+    class ShaderCache(pyrender.shader_program.ShaderProgramCache):
+        """pyrender's shader cache, with sceneforge's mesh.frag (an absolute path) for pyrender's."""
+
+        def __init__(self, mesh_shader: str):
+            super().__init__()
+            self.mesh_shader = mesh_shader
+
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            if fragment_shader == "mesh.frag":
+                fragment_shader = self.mesh_shader
+            return super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+
+    class Scene(pyrender.Scene):
+        """pyrender's scene with its mesh and light nodes in name order, not set order: pyrender
+        draws meshes and sums lights in the order it gets them, and a set's order changes
+        from one scene to the next (pixels would change by a level of rounding)."""
+
+        @property
+        def mesh_nodes(self):
+            return sorted(super().mesh_nodes, key=lambda n: n.name)
+
+        @property
+        def light_nodes(self):
+            return sorted(super().light_nodes, key=lambda n: n.name)
+
+        #: the light nodes of each room's mesh node (by node name), in name order
+        room_lights: dict
+
+    class RoomLights:
+        """The scene as pyrender's lighting code sees it for one room's mesh node: only the
+        lights of that room (``Scene.room_lights``), in name order. Every fragment then
+        evaluates its own room's few lights, not every light up to :data:`MAX_LIGHTS`."""
+
+        def __init__(self, scene, node):
+            self._scene = scene
+            self.light_nodes = scene.room_lights.get(node.name, [])
+            self.point_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.PointLight)]
+            self.spot_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.SpotLight)]
+            self.directional_light_nodes = []
+
+        def __getattr__(self, name):  # ambient_light, get_pose, main_camera_node, centroid, scale
+            return getattr(self._scene, name)
 
     class IntrinsicsCamera(pyrender.IntrinsicsCamera):
         """pyrender's intrinsics camera plus the skew of ``K``."""
@@ -283,6 +384,7 @@ def _gl() -> SimpleNamespace:
             self._egl_context = None
 
     return SimpleNamespace(pyrender=pyrender, egl=egl, GL=GL, GLError=GLError, Renderer=FramebufferRenderer,
+                           ShaderCache=ShaderCache, Scene=Scene,
                            IntrinsicsCamera=IntrinsicsCamera, Platform=Platform)
 
 
@@ -342,7 +444,7 @@ class Renderer:
                     Mesa's software device
     antialias     : 4× multisampling (pyrender's default); off by default so that pixels
                     sample their centres like the ray tracer (see the module docstring)
-    config        : lighting and background
+    config        : lights, shadows and background
 
     Keeps the GL scene of the last house it rendered (compared by identity: do not modify a
     house between renders) and rebuilds it, freeing the old one, when the house changes.
@@ -371,7 +473,8 @@ class Renderer:
         # pyrender uploads tightly packed RGB textures and reads back RGB rows of any width
         gl.GL.glPixelStorei(gl.GL.GL_UNPACK_ALIGNMENT, 1)
         gl.GL.glPixelStorei(gl.GL.GL_PACK_ALIGNMENT, 1)
-        self._gl = gl.Renderer(self.width, self.height, samples=4 if self.antialias else 0)
+        self._gl = gl.Renderer(self.width, self.height, samples=4 if self.antialias else 0,
+                               mesh_shader=_mesh_shader(float(self.config.light_min_distance)))
         self._house: House | None = None
         self._scene = None
         self._camera_node = None
@@ -381,7 +484,9 @@ class Renderer:
     def render(self, house: "House", camera: "Camera") -> np.ndarray:
         """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``."""
         flags = self._prepare(house, camera)
-        color, _ = self._gl.render(self._scene, flags | _gl().pyrender.RenderFlags.FLAT)
+        if self.config.shadows:
+            flags |= _gl().pyrender.RenderFlags.SHADOWS_SPOT
+        color, _ = self._gl.render(self._scene, flags)
         return np.array(color, dtype=np.uint8)
 
     def depth(self, house: "House", camera: "Camera") -> np.ndarray:
@@ -449,18 +554,68 @@ class Renderer:
             # pyrender frees the GL objects of whatever its context holds that a scene lacks
             self._gl._update_context(pyrender.Scene(), pyrender.RenderFlags.NONE)
         self._scene = self._house = None
-        primitives = []
-        for batch in shade_house(house, self.config):  # one batch per texture
+        self._gl._lit.clear()
+        ambient = float(self.config.ambient)
+        scene = gl.Scene(bg_color=(*self.config.background, 1.0), ambient_light=(ambient,) * 3)
+        textures: dict[tuple, object] = {}
+        rooms: dict[str | None, tuple[np.ndarray, list]] = {}
+        for batch in house_batches(house):
+            material = batch.material
             texture = None
-            if batch.texture is not None:
-                texture = pyrender.Texture(source=_texels(house, batch.texture), source_channels="RGB")
-            material = pyrender.MetallicRoughnessMaterial(
-                baseColorFactor=(1.0, 1.0, 1.0, 1.0), baseColorTexture=texture, doubleSided=True
-            )
-            primitives.append(pyrender.Primitive(positions=batch.positions, color_0=batch.colors,
-                                                 texcoord_0=batch.uv, material=material))
-        scene = pyrender.Scene(bg_color=(*self.config.background, 1.0), ambient_light=(0.0, 0.0, 0.0))
-        if primitives:
-            scene.add(pyrender.Mesh(primitives=primitives))
+            if material.texture is not None:
+                key = (_texture_key(material.texture), tuple(material.wrap))
+                if key not in textures:
+                    wrap = [_WRAP_CODES[w] for w in material.wrap]
+                    sampler = pyrender.Sampler(magFilter=gl.GL.GL_LINEAR, minFilter=gl.GL.GL_LINEAR_MIPMAP_LINEAR,
+                                               wrapS=wrap[0], wrapT=wrap[1])
+                    textures[key] = pyrender.Texture(source=_texels(house, material.texture), source_channels="RGB",
+                                                     sampler=sampler)
+                texture = textures[key]
+            look = pyrender.MetallicRoughnessMaterial(
+                baseColorFactor=(*(float(c) for c in material.base_color[:3]), 1.0), baseColorTexture=texture,
+                metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True)
+            primitive = pyrender.Primitive(positions=batch.positions, normals=batch.normals, color_0=batch.colors,
+                                           texcoord_0=batch.uv, material=look)
+            rooms.setdefault(batch.room, (batch.origin, []))[1].append(primitive)
+        mesh_of_room = {}
+        for k, (room, (origin, primitives)) in enumerate(rooms.items()):
+            mesh_of_room[room] = f"room{k:06d}"
+            scene.add(pyrender.Mesh(primitives=primitives), name=mesh_of_room[room], pose=_translation(origin))
+        scene.room_lights = {name: [] for name in mesh_of_room.values()}
+        for k, light in enumerate(house_lights(house, self.config)):
+            node, pose = _pyrender_light(pyrender, light)
+            if light.room in mesh_of_room:
+                scene.room_lights[mesh_of_room[light.room]].append(scene.add(node, name=f"light{k:06d}", pose=pose))
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
+        # shadow maps frame the scene's bounds; pyrender's own computation uses np.infty,
+        # which NumPy 2 removed
+        scene._bounds = house.bounds()
         self._scene, self._house = scene, house
+
+
+#: OpenGL's wrap modes of :data:`sceneforge.houses.model.WRAPS`
+_WRAP_CODES = {"repeat": 10497, "clamp": 33071, "mirror": 33648}
+
+
+def _translation(t) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = t
+    return m
+
+
+def _pyrender_light(pyrender, light: Light):
+    """(pyrender light, pose) of a :class:`Light`: pyrender's light falls off as
+    ``intensity / d²`` and its diffuse term is ``base × (1 - 0.04) / π`` of it, hence the
+    scale; a spot light points along its pose's -z."""
+    intensity = light.intensity / _DIFFUSE
+    if light.kind == "point":
+        return pyrender.PointLight(color=np.ones(3), intensity=intensity), _translation(light.position)
+    from .lights import WINDOW_CONE
+
+    z = -np.asarray(light.direction, dtype=np.float64)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    pose = _translation(light.position)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    return pyrender.SpotLight(color=np.ones(3), intensity=intensity, innerConeAngle=0.0,
+                              outerConeAngle=float(WINDOW_CONE)), pose

@@ -1,0 +1,278 @@
+"""Path-traced RGB of house views with Mitsuba 3 (``sceneforge render --rgb pathtraced``).
+
+Same interface as :class:`~sceneforge.render.raster.Renderer`: ``render(house, camera)``
+gives an (H, W, 3) uint8 sRGB image, pixel-aligned with the depth layers.
+
+Camera. :func:`mitsuba_sensor` turns the layers' camera (OpenCV axes, ``K`` in pixels,
+pixel ``(i, j)`` centred at ``(j + 0.5, i + 0.5)``) into Mitsuba's ``perspective`` sensor:
+Mitsuba's camera looks along its +z with +y up and +x to the *left* of the image, so its
+pose is ``cam_to_world · diag(-1, -1, 1)``; the horizontal field of view is
+``2 atan(W / 2 fx)`` and the principal point offset ``((W/2 - cx) / W, (H/2 - cy) / H)``
+(Mitsuba moves the image, not the principal point: the signs are OpenCV's negated).
+Mitsuba's sensor has square pixels and no skew: a camera with ``fx != fy`` or a skew is
+refused with a one-line error. Each pixel integrates its own square (a box filter of
+radius ½ pixel), so the image is antialiased: a silhouette pixel blends its two sides,
+while the pixels on either side of it show what the layers' centre ray sees.
+
+Scene. The house's draw batches (:func:`~sceneforge.render.raster.house_batches`: every
+face group with its own material) become two-sided diffuse meshes: reflectance = linear
+base colour × the sRGB texture decoded to linear (with the material's wrapping), or ×
+the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.lights`):
+point lights for lamps and fallbacks, spot lights for windows, with the raster mode's
+irradiance × :data:`EXPOSURE`; the ambient term is not added (indirect light stands in for it). The integrator is
+Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces.
+
+Determinism. A fixed sample count and seed give the same image on the same machine and
+variant: the view's seed is the renderer's seed mixed with a CRC of the camera (so views
+do not share one noise pattern, and the same view always gets the same one), each render
+pass takes one sample per pixel (the view's seed + ``k`` in pass ``k``) and
+the passes are averaged in numpy in pass order, so no two samples ever race to add into
+one pixel. Across CPUs (LLVM) and GPUs (CUDA) results differ by floating-point rounding.
+
+Variant: ``cuda_ad_rgb`` when Mitsuba finds a CUDA GPU, else ``llvm_ad_rgb`` (Dr.Jit's LLVM
+backend, which needs a libLLVM shared library; ``scripts/system-deps.sh`` installs one).
+"""
+
+from __future__ import annotations
+
+import functools
+import glob
+import os
+import re
+import zlib
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import MissingDependencyError, SceneforgeError
+from .lights import WINDOW_CONE, house_lights
+from .raster import RenderConfig, _texels, _texture_key, house_batches, linear_to_srgb, srgb_to_linear
+
+if TYPE_CHECKING:
+    from ..cameras import Camera
+    from ..houses.model import House
+
+INSTALL_MITSUBA = "pip install 'sceneforge[pathtrace]'"
+INSTALL_LLVM = "sudo apt-get install libllvm19 (LLVM 16 or newer), or set DRJIT_LIBLLVM_PATH"
+#: the oldest LLVM whose library Dr.Jit's kernels compile with (LLVM 14 and 15 abort the
+#: process: "Cannot select: fminimum")
+MIN_LLVM = 16
+#: light bounces of the path tracer
+MAX_DEPTH = 6
+#: the lights' intensity relative to the raster mode's: in a closed room of albedo ~0.8,
+#: light bounces add up to several times the direct light, which the raster mode's ambient
+#: term only approximates; this keeps the two modes' images about as bright
+EXPOSURE = 0.35
+#: samples per pixel when none is given
+DEFAULT_SAMPLES = 64
+#: fx and fy may differ by this fraction, and the skew by this many pixels
+SQUARE_PIXEL_TOLERANCE = 1e-9
+
+
+def newest_llvm() -> tuple[int, str] | None:
+    """(major version, path) of the newest libLLVM shared library in the places Dr.Jit
+    searches (``/usr/lib/<arch>/``), or None."""
+    found = []
+    for path in glob.glob("/usr/lib/*/libLLVM*.so*") + glob.glob("/usr/lib/llvm-*/lib/libLLVM*.so*"):
+        match = re.search(r"libLLVM(?:-|\.so\.)(\d+)", os.path.basename(path))
+        if match:
+            found.append((int(match.group(1)), path))
+    return max(found, default=None)
+
+
+@functools.cache
+def _mitsuba():
+    """Mitsuba with its variant set (module docs), imported on first use. Points Dr.Jit at
+    the newest libLLVM (it takes the first it finds, and an old one aborts the process)."""
+    if not os.environ.get("DRJIT_LIBLLVM_PATH"):
+        llvm = newest_llvm()
+        if llvm is not None and llvm[0] >= MIN_LLVM:
+            os.environ["DRJIT_LIBLLVM_PATH"] = llvm[1]
+        elif not _has_cuda():
+            have = f"LLVM {llvm[0]} is too old" if llvm else "no libLLVM found"
+            raise MissingDependencyError(f"libLLVM {MIN_LLVM}+", f"path-traced RGB on the CPU ({have})",
+                                         INSTALL_LLVM)
+    try:
+        import mitsuba as mi
+    except ModuleNotFoundError as e:
+        raise MissingDependencyError(e.name or "mitsuba", "path-traced RGB", INSTALL_MITSUBA) from None
+    errors = []
+    for variant in ("cuda_ad_rgb", "llvm_ad_rgb"):
+        if variant not in mi.variants():
+            continue
+        try:
+            mi.set_variant(variant)
+            import drjit as dr
+
+            dr.eval(mi.Float(0.0) + 1.0)  # a backend without its library fails only when used
+            return mi
+        except (ImportError, RuntimeError, AttributeError) as e:
+            errors.append(f"{variant}: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
+    raise MissingDependencyError("libLLVM", f"path-traced RGB (no Mitsuba variant runs: {'; '.join(errors)})",
+                                 INSTALL_LLVM)
+
+
+def _has_cuda() -> bool:
+    """Whether an NVIDIA driver is loadable (Mitsuba's CUDA variant needs nothing else)."""
+    import ctypes.util
+
+    return ctypes.util.find_library("cuda") is not None
+
+
+def mitsuba_sensor(camera: "Camera") -> dict:
+    """The Mitsuba ``perspective`` sensor of ``camera`` (module docs) as plain data, without
+    film and sampler; ``to_world`` is a (4, 4) float64 array. Raises
+    :class:`SceneforgeError` for non-square pixels or a skew."""
+    K, W, H = camera.K, camera.width, camera.height
+    fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
+    if abs(fx - fy) > SQUARE_PIXEL_TOLERANCE * fx or abs(skew) > SQUARE_PIXEL_TOLERANCE:
+        raise SceneforgeError(f"path tracing needs square pixels and no skew (Mitsuba's camera has neither); "
+                              f"K has fx {fx:g}, fy {fy:g}, skew {skew:g}: use --rgb raster")
+    pose = camera.cam_to_world @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    return {
+        "type": "perspective",
+        "fov_axis": "x",
+        "fov": float(np.degrees(2.0 * np.arctan(W / (2.0 * fx)))),
+        "principal_point_offset_x": float((W / 2.0 - K[0, 2]) / W),
+        "principal_point_offset_y": float((H / 2.0 - K[1, 2]) / H),
+        "near_clip": 0.01,
+        "far_clip": 1000.0,
+        "to_world": pose,
+    }
+
+
+class PathTracer:
+    """Path-traced RGB of house views (module docs).
+
+    width, height : image size in pixels; every camera must have it
+    config        : lights (as the raster mode's) and background
+    samples       : samples per pixel (None: :data:`DEFAULT_SAMPLES`)
+    seed          : the renderer's seed (module docs)
+
+    Keeps the Mitsuba scene of the last house it rendered (compared by identity).
+    """
+
+    def __init__(self, width: int, height: int, config: RenderConfig | None = None, samples: int | None = None,
+                 seed: int = 0):
+        if int(width) < 1 or int(height) < 1:
+            raise ValueError(f"image size must be positive, got {width}×{height}")
+        self.mi = _mitsuba()
+        self.width, self.height = int(width), int(height)
+        self.config = config or RenderConfig()
+        self.samples = int(samples or DEFAULT_SAMPLES)
+        if self.samples < 1:
+            raise ValueError(f"samples must be at least 1, got {self.samples}")
+        self.seed = int(seed)
+        self._house = self._scene = None
+
+    @property
+    def variant(self) -> str:
+        return self.mi.variant()
+
+    def render(self, house: "House", camera: "Camera") -> np.ndarray:
+        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``."""
+        if self.mi is None:
+            raise SceneforgeError("the renderer is closed")
+        if camera.shape != (self.height, self.width):
+            raise ValueError(
+                f"camera is {camera.width}×{camera.height} but the renderer renders {self.width}×{self.height}; "
+                "use camera.resized()"
+            )
+        linear = self.render_linear(house, camera)
+        return np.round(255.0 * linear_to_srgb(linear)).astype(np.uint8)
+
+    def render_linear(self, house: "House", camera: "Camera") -> np.ndarray:
+        """(H, W, 3) float64 linear radiance of the view, before encoding."""
+        mi = self.mi
+        if house is not self._house:
+            self._scene, self._house = self._build_scene(house), house
+        spec = mitsuba_sensor(camera)
+        sensor = mi.load_dict({
+            **spec,
+            "to_world": mi.ScalarTransform4f(spec["to_world"].tolist()),
+            "film": {"type": "hdrfilm", "width": self.width, "height": self.height, "pixel_format": "rgb",
+                     "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": 1},
+        })
+        view_seed = (self.seed * 1_000_003 + zlib.crc32(camera.K.tobytes() + camera.cam_to_world.tobytes())) % 2 ** 31
+        total = np.zeros((self.height, self.width, 3))
+        for k in range(self.samples):
+            image = mi.render(self._scene, sensor=sensor, spp=1, seed=view_seed + k)
+            total += np.asarray(image, dtype=np.float64)[..., :3]
+        out = total / self.samples
+        nothing = srgb_to_linear(np.asarray(self.config.background))
+        return np.where(np.isfinite(out), out, nothing)
+
+    def close(self) -> None:
+        """Forget the scene. Idempotent."""
+        self._house = self._scene = None
+        self.mi = None
+
+    def __enter__(self) -> "PathTracer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _build_scene(self, house: "House"):
+        mi = self.mi
+        scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True}}
+        background = srgb_to_linear(np.asarray(self.config.background))
+        if background.any():
+            scene["background"] = {"type": "constant", "radiance": {"type": "rgb", "value": background.tolist()}}
+        textures: dict[tuple, object] = {}
+        for k, batch in enumerate(house_batches(house)):
+            scene[f"mesh{k:06d}"] = self._mesh(house, f"mesh{k:06d}", batch, textures)
+        for k, light in enumerate(house_lights(house, self.config)):
+            intensity = {"type": "rgb", "value": [light.intensity * np.pi * EXPOSURE] * 3}
+            if light.kind == "point":
+                scene[f"light{k:06d}"] = {"type": "point", "position": light.position.tolist(), "intensity": intensity}
+            else:
+                target = light.position + light.direction
+                scene[f"light{k:06d}"] = {
+                    "type": "spot", "intensity": intensity, "cutoff_angle": float(np.degrees(WINDOW_CONE)),
+                    "beam_width": 0.0,
+                    "to_world": mi.ScalarTransform4f().look_at(origin=light.position.tolist(),
+                                                               target=target.tolist(), up=_up(light.direction)),
+                }
+        return mi.load_dict(scene)
+
+    def _mesh(self, house: "House", name: str, batch, textures: dict):
+        """A Mitsuba mesh of one draw batch with its two-sided diffuse BSDF."""
+        mi = self.mi
+        material = batch.material
+        base = np.clip(np.asarray(material.base_color[:3], dtype=np.float64), 0.0, 1.0)
+        if material.texture is not None:
+            key = (_texture_key(material.texture), tuple(base))
+            if key not in textures:
+                linear = srgb_to_linear(_texels(house, material.texture) / 255.0) * base
+                # the image's top row is v = 1 (OpenGL); Mitsuba's bitmap has its first row at v = 0
+                textures[key] = mi.Bitmap(np.ascontiguousarray(linear[::-1], dtype=np.float32))
+            wrap = {"repeat": "repeat", "clamp": "clamp", "mirror": "mirror"}[material.wrap[0]]
+            reflectance = {"type": "bitmap", "bitmap": textures[key], "raw": True, "wrap_mode": wrap,
+                           "filter_type": "bilinear"}
+        elif batch.colors is not None:
+            reflectance = {"type": "mesh_attribute", "name": "vertex_color"}
+        else:
+            reflectance = {"type": "rgb", "value": base.tolist()}
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": reflectance}})
+        n = len(batch.positions)
+        mesh = mi.Mesh(name, n, n // 3, props=props, has_vertex_normals=False,
+                       has_vertex_texcoords=batch.uv is not None)
+        if batch.colors is not None and material.texture is None:
+            mesh.add_attribute("vertex_color", 3, (batch.colors[:, :3] * base).astype(np.float32).ravel())
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = (batch.positions.astype(np.float64) + batch.origin).astype(np.float32).ravel()
+        params["faces"] = np.arange(n, dtype=np.uint32)
+        if batch.uv is not None:
+            params["vertex_texcoords"] = batch.uv.astype(np.float32).ravel()
+        params.update()
+        return mesh
+
+
+def _up(direction: np.ndarray) -> list[float]:
+    """An up vector not parallel to ``direction``."""
+    return [0.0, 0.0, 1.0] if abs(direction[1]) > 0.99 else [0.0, 1.0, 0.0]

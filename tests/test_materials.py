@@ -1,0 +1,119 @@
+"""Every material of every mesh: face groups through the model, the native format and the
+OBJ, glTF and PLY writers and readers; old one-material files unchanged."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sceneforge import schemas
+from sceneforge.errors import HouseError
+from sceneforge.houses import BUNDLED_TOY, House, LoadOptions, Material, discover, load, make_instance
+from sceneforge.houses.formats.generic import load_house as load_generic
+from sceneforge.houses.formats.native import write_house
+from sceneforge.testing.generic import write_house as write_generic
+
+from .conftest import box_instance, box_room
+
+
+def two_material_house(texture=None) -> House:
+    """A room with a box whose top faces are red (textured, clamped) and the rest blue."""
+    house = box_room("two", size=4.0, height=3.0)
+    box = box_instance(house, "table", 7, (0.6, 0.5, 0.4), (0.3, 0.25, 0.7))
+    normals = np.cross(*(box.vertices[box.faces[:, k]] - box.vertices[box.faces[:, 0]] for k in (1, 2)))
+    box.materials = (Material((1.0, 0.0, 0.0, 1.0), texture, ("clamp", "clamp")), Material((0.0, 0.0, 1.0, 0.5)))
+    box.face_material = (normals[:, 1] <= 0).astype(np.int32)
+    box.uv = (box.vertices[:, [0, 2]] - box.vertices[:, [0, 2]].min(0)).astype(np.float32)
+    return house
+
+
+def test_make_instance_keeps_groups_drops_unused_and_checks():
+    house = House(id="h", instances=[])
+    quad = dict(vertices=[[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 2, 0]], category=0, label="x",
+                room_id=None)
+    a, b, c = (Material((k / 3, 0, 0, 1)) for k in range(3))
+    # the third face is degenerate: dropped, and material c with it
+    inst = make_instance(house, name="q", faces=[[0, 1, 2], [0, 2, 3], [4, 4, 4]], material=[a, b, c],
+                         face_material=[1, 0, 2], **quad)
+    assert inst.materials == (a, b) and inst.face_material.tolist() == [1, 0]
+    one = make_instance(house, name="q1", faces=[[0, 1, 2]], material=[a, b], face_material=[1], **quad)
+    assert one.materials == (b,) and one.face_material is None and one.material == b
+    with pytest.raises(HouseError, match="face materials must be 1 indices into its 2 materials"):
+        make_instance(house, name="bad", faces=[[0, 1, 2]], material=[a, b], face_material=[2], **quad)
+    with pytest.raises(HouseError, match="2 materials but no face materials"):
+        make_instance(house, name="bad", faces=[[0, 1, 2]], material=[a, b], **quad)
+
+
+def test_material_is_the_one_covering_the_most_area_and_setting_it_sets_all():
+    house = two_material_house()
+    box = house.instances[-1]
+    assert box.material.base_color == (0.0, 0.0, 1.0, 0.5)  # sides and bottom: 5 of 6 box faces
+    box.material = Material((0.5, 0.5, 0.5, 1.0))
+    assert box.materials == (Material((0.5, 0.5, 0.5, 1.0)),) and box.face_material is None
+
+
+def test_native_round_trip_keeps_groups_wrapping_and_vertex_colours(tmp_path):
+    Image.fromarray(np.full((2, 2, 3), 200, np.uint8)).save(tmp_path / "t.png")
+    house = two_material_house(tmp_path / "t.png")
+    box = house.instances[-1]
+    box.colors = np.linspace(0, 1, 4 * len(box.vertices), dtype=np.float32).reshape(-1, 4)
+    path = write_house(house, tmp_path / "out")
+    doc = json.loads(path.read_text())
+    assert schemas.errors(doc, "house") == []
+    record = doc["instances"][-1]
+    assert "material" not in record and len(record["materials"]) == 2
+    assert record["materials"][0]["wrap"] == ["clamp", "clamp"]
+    assert "materials" not in doc["instances"][0] and "wrap" not in doc["instances"][0]["material"]
+    back = load(tmp_path / "out").instances[-1]
+    np.testing.assert_array_equal(back.face_material, box.face_material)
+    np.testing.assert_array_equal(back.colors, box.colors)
+    assert [m.base_color for m in back.materials] == [m.base_color for m in box.materials]
+    assert [m.wrap for m in back.materials] == [("clamp", "clamp"), ("repeat", "repeat")]
+    assert back.materials[0].texture.read_bytes() == (tmp_path / "t.png").read_bytes()
+
+
+def test_bundled_toy_houses_still_load_and_write_the_same_bytes(tmp_path):
+    """The bundled houses (one material per instance) load as before and are written back byte
+    for byte as the files they came from: the one-material layout is unchanged."""
+    for source in discover(BUNDLED_TOY)[:2]:
+        house = load(source)
+        assert all(i.face_material is None and len(i.materials) == 1 for i in house.instances)
+        path = write_house(house, tmp_path / house.id)
+        original = source.path / "house.json" if source.path.is_dir() else source.path
+        assert json.loads(path.read_text())["instances"] == json.loads(original.read_text())["instances"]
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".gltf", ".glb", ".ply"])
+def test_writers_and_readers_keep_face_groups(suffix, tmp_path):
+    Image.fromarray(np.full((2, 2, 3), 200, np.uint8)).save(tmp_path / "t.png")
+    house = two_material_house(None if suffix == ".ply" else tmp_path / "t.png")
+    box = house.instances[-1]
+    back = load_generic(write_generic(house, tmp_path / f"scene{suffix}"), LoadOptions())
+    (table,) = [i for i in back.instances if i.category_name == "table"]
+    assert len(table.materials) == 2 and not any("materials" in w for w in back.warnings)
+    # every face has its material back, faces found by their centres (glTF writes a primitive
+    # per material, so faces come back grouped; materials come back in order of first use)
+    def per_face(inst):
+        centres = np.round(inst.vertices[inst.faces].mean(1), 4)
+        return {tuple(c): (tuple(np.round(np.array(inst.materials[g].base_color) * 255)), inst.materials[g].wrap,
+                           inst.materials[g].texture is not None)
+                for c, g in zip(centres, inst.face_materials(), strict=True)}
+
+    got, want = per_face(table), per_face(box)
+    if suffix == ".ply":  # no textures, no wrapping
+        got, want = ({c: v[0] for c, v in d.items()} for d in (got, want))
+    assert got == want
+
+
+def test_ply_vertex_colours_become_the_instance_colours(tmp_path):
+    path = tmp_path / "c.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "property uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\n"
+                    "property list uchar int vertex_indices\nend_header\n"
+                    "0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n")
+    (inst,) = load_generic(path, LoadOptions()).instances
+    np.testing.assert_allclose(inst.colors, [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 1]])
+    assert inst.material.base_color == (1.0, 1.0, 1.0, 1.0)
