@@ -68,7 +68,7 @@ def write_downloaded(house: House, path: str | Path, *, merged_shell: bool = Fal
             fs.append(inst.faces + n)
             n += len(inst.vertices)
         merged = Instance(len(out.instances), "Shell", NYU40_IDS["wall"], "Shell", None, np.concatenate(vs),
-                          np.concatenate(fs), True, shell[0].material)
+                          np.concatenate(fs), True, materials=(shell[0].material,))
         out.instances.append(merged)
         names.append("Shell")
     if generic_names:
@@ -79,7 +79,7 @@ def write_downloaded(house: House, path: str | Path, *, merged_shell: bool = Fal
             lo = corner + offset
             v, f = _box(lo, lo + np.asarray(size))
             out.instances.append(Instance(len(out.instances), name, 0, name, None, v, f, False,
-                                          Material((0.2, 0.6, 0.2, 1.0))))
+                                          materials=(Material((0.2, 0.6, 0.2, 1.0)),)))
             names.append(name)
     return write_house(out, path, names=names)
 
