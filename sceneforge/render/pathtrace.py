@@ -46,7 +46,15 @@ import numpy as np
 
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import WINDOW_CONE, house_lights
-from .raster import RenderConfig, _texels, _texture_key, house_batches, linear_to_srgb, srgb_to_linear
+from .raster import (
+    RenderConfig,
+    _texels,
+    _texture_key,
+    check_camera_size,
+    house_batches,
+    linear_to_srgb,
+    srgb_to_linear,
+)
 
 if TYPE_CHECKING:
     from ..cameras import Camera
@@ -173,11 +181,7 @@ class PathTracer:
         """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``."""
         if self.mi is None:
             raise SceneforgeError("the renderer is closed")
-        if camera.shape != (self.height, self.width):
-            raise ValueError(
-                f"camera is {camera.width}×{camera.height} but the renderer renders {self.width}×{self.height}; "
-                "use camera.resized()"
-            )
+        check_camera_size(camera, self.width, self.height)
         linear = self.render_linear(house, camera)
         return np.round(255.0 * linear_to_srgb(linear)).astype(np.uint8)
 

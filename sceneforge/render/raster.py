@@ -118,6 +118,13 @@ def srgb_to_linear(c):
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+def check_camera_size(camera: "Camera", width: int, height: int) -> None:
+    """Raise ValueError unless ``camera`` has the ``width``×``height`` a renderer was made for."""
+    if camera.shape != (height, width):
+        raise ValueError(f"camera is {camera.width}×{camera.height} but the renderer renders {width}×{height}; "
+                         "use camera.resized()")
+
+
 def linear_to_srgb(c):
     """sRGB-encoded values of linear values in [0, 1] (IEC 61966-2-1)."""
     c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
@@ -531,11 +538,7 @@ class Renderer:
         return the render flags every pass uses."""
         if self._platform is None:
             raise SceneforgeError("the renderer is closed")
-        if camera.shape != (self.height, self.width):
-            raise ValueError(
-                f"camera is {camera.width}×{camera.height} but the renderer renders {self.width}×{self.height}; "
-                "use camera.resized()"
-            )
+        check_camera_size(camera, self.width, self.height)
         self._platform.make_current()
         if house is not self._house:
             self._build_scene(house)
