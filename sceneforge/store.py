@@ -7,7 +7,7 @@ validator cannot disagree.
 
 - **Per-view arrays** have the view index first, one view per chunk, and
   ``config.store.views_per_shard`` views per shard file (zarr's sharding codec), each chunk
-  zstd-compressed. ``depth (N, 5, H, W) float32`` holds D1..D5 with NaN = no surface.
+  compressed (Blosc + zstd by default). ``depth (N, 5, H, W) float32`` holds D1..D5 with NaN = no surface.
 - **Ground-truth meshes** (objects and envelope apart) are ragged: the vertices, faces and
   face instances of all views concatenated in view order, with ``vertex_offsets`` and
   ``face_offsets (N + 1,)``; faces index the view's own vertex rows.
@@ -182,9 +182,14 @@ def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dic
 
 
 def _compressor(config: "DatasetConfig"):
-    from zarr.codecs import ZstdCodec
+    """The configured compressor. Blosc shuffles by the array's item size (zarr sets it from
+    the dtype), so single-byte arrays (RGB, masks) are compressed as plain zstd would."""
+    from zarr.codecs import BloscCodec, ZstdCodec
 
-    return ZstdCodec(level=config.store.compression_level)
+    level = config.store.compression_level
+    if config.store.codec == "zstd":
+        return ZstdCodec(level=level)
+    return BloscCodec(cname="zstd", clevel=level, shuffle="shuffle")
 
 
 def create_arrays(group: "zarr.Group", config: "DatasetConfig", n_views: int) -> None:

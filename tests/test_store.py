@@ -18,7 +18,15 @@ from sceneforge.errors import EXIT_FAILURES, SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, bundled_toy_dir, discover, load
 from sceneforge.pipeline import render_dataset
 from sceneforge.preview import layer_points
-from sceneforge.store import check_store, conventions_attrs, describe, layout, open_store, validate_store
+from sceneforge.store import (
+    array_digests,
+    check_store,
+    conventions_attrs,
+    describe,
+    layout,
+    open_store,
+    validate_store,
+)
 from sceneforge.view import compute_view
 
 #: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
@@ -96,7 +104,7 @@ def test_written_store_matches_the_schema(store_path):
     assert validate_store(str(store_path)) == []
     depth = doc["arrays"]["depth"]
     assert depth["shape"] == [6, 5, 24, 32] and depth["chunks"] == [1, 5, 24, 32] and depth["shards"][0] == 4
-    assert depth["codecs"] == ["sharding_indexed", "bytes", "zstd"]
+    assert depth["codecs"] == ["sharding_indexed", "bytes", "blosc"]
     attrs = doc["attributes"]
     assert attrs["nyu40"][2] == {"id": 2, "name": "floor", "envelope": True}
     assert attrs["conventions"]["layers"] == ["D1", "D2", "D3", "D4", "D5"]
@@ -167,6 +175,28 @@ def test_a_house_gets_the_same_cameras_alone_or_among_others(store_path, tmp_pat
     for i in range(2):
         np.testing.assert_array_equal(alone.view(i)["cam_to_world"], among.view(2 + i)["cam_to_world"])
 
+
+
+def test_plain_zstd_stores_the_same_arrays_and_validates(store_path, tmp_path):
+    out = tmp_path / "zstd.zarr"
+    render_dataset(BUNDLED_TOY, str(out), load_config(None, {**SMALL, "store": {**SMALL["store"], "codec": "zstd"}}))
+    import zarr
+
+    doc = describe(zarr.open_group(str(out), mode="r"))
+    assert doc["arrays"]["depth"]["codecs"] == ["sharding_indexed", "bytes", "zstd"]
+    assert doc["arrays"]["mesh/envelope/faces"]["codecs"][-1] == "zstd"
+    assert validate_store(str(out)) == []
+    plain, shuffled = array_digests(str(out)), array_digests(str(store_path))
+    assert plain.keys() == shuffled.keys() and plain == shuffled
+
+
+@pytest.mark.parametrize("store, message", [
+    ({"compression_level": 10}, "compression_level must be in 1..9 for codec blosc-zstd, got 10"),
+    ({"codec": "zstd", "compression_level": 23}, "compression_level must be in 1..22 for codec zstd, got 23"),
+])
+def test_compression_level_range_follows_the_codec(store, message):
+    with pytest.raises(SceneforgeError, match=f"config: {message}"):
+        load_config(None, {"store": store})
 
 # ----------------------------------------------------------------------------- checking
 
