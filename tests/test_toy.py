@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import deque
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -282,6 +283,33 @@ def test_unwritable_output_is_a_clear_error(tmp_path):
     (tmp_path / "toy_0_000").write_text("a file where a house folder should go")
     with pytest.raises(SceneforgeError, match="cannot write .*toy_0_000"):
         write_toy_houses(tmp_path, 1, 0)
+
+
+def test_a_house_failing_mid_write_leaves_no_partial_folder(tmp_path, monkeypatch):
+    from sceneforge.houses.formats import native
+
+    real = native.write_house
+
+    def dies_after_the_first(house, out_dir):
+        if house.id != "toy_0_000":
+            Path(out_dir).mkdir(parents=True)
+            (Path(out_dir) / "house.json").write_text("{")  # half written
+            raise OSError(28, "No space left on device")
+        return real(house, out_dir)
+
+    monkeypatch.setattr(native, "write_house", dies_after_the_first)
+    with pytest.raises(SceneforgeError, match="cannot write .*toy_0_001: No space left on device"):
+        write_toy_houses(tmp_path, 3, 0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["toy_0_000"]
+    assert load_house(tmp_path / "toy_0_000").id == "toy_0_000"
+
+
+def test_rewriting_a_house_replaces_it_whole(tmp_path):
+    (tmp_path / "toy_0_000").mkdir()
+    (tmp_path / "toy_0_000" / "stale.txt").write_text("from an older run")
+    write_toy_houses(tmp_path, 1, 0)
+    assert not (tmp_path / "toy_0_000" / "stale.txt").exists()
+    assert load_house(tmp_path / "toy_0_000").id == "toy_0_000"
 
 
 def test_cli_rejects_a_bad_count(tmp_path):

@@ -5,6 +5,9 @@ Regenerate the bundled houses with ``python -m sceneforge.houses.toy --bundle``.
 
 from __future__ import annotations
 
+import os
+import shutil
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +37,9 @@ def write_toy_houses(out: str | Path, count: int, seed: int, progress=None,
 
     House ``i`` has id ``toy_<seed>_<i:03d>`` and seed :func:`house_seed` ``(seed, i)``, and
     the hard cases ``options`` asks for (:class:`~.hard_cases.ToyOptions`; None: none).
-    ``progress(house, folder)`` is called after each house is written.
+    ``progress(house, folder)`` is called after each house is written. Each house is written
+    into a hidden folder beside its own and renamed into place when complete, so a killed
+    run leaves whole houses only (house discovery skips hidden names).
     """
     from ..formats.native import write_house
 
@@ -45,10 +50,18 @@ def write_toy_houses(out: str | Path, count: int, seed: int, progress=None,
     for i in range(count):
         house = generate_house(house_seed(seed, i), toy_house_id(seed, i), options)
         folder = Path(out) / house.id
+        partial = folder.with_name(f".{house.id}.{uuid.uuid4().hex[:8]}.partial")
         try:
-            write_house(house, folder)
+            if folder.exists() and not folder.is_dir():
+                raise NotADirectoryError(f"{folder} is a file")
+            write_house(house, partial)
+            if folder.exists():
+                shutil.rmtree(folder)
+            os.replace(partial, folder)
         except OSError as e:
             raise SceneforgeError(f"toy houses: cannot write {folder}: {e.strerror or e}") from None
+        finally:
+            shutil.rmtree(partial, ignore_errors=True)
         folders.append(folder)
         if progress is not None:
             progress(house, folder)
