@@ -39,6 +39,7 @@
 #include <limits>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #if RTC_VERSION_MAJOR >= 4
@@ -776,6 +777,122 @@ PyObject* engine_closest(EngineObject* self, PyObject* args) {
     return new_bytearray(out.data(), k * sizeof(double));
 }
 
+// ------------------------------------------------------------------ layer rules
+
+// layer_rules(offsets (n+1,) i8, t (k,) f8, instance (k,) i4, closing_t (n,) f8,
+//             closing_instance (n,) i4, depth_scale (n,) or (1,) f8, category (c,) u1,
+//             same_instance f8, depth (5,n) f4 out, category (3,n) u1 out, instance (2,n) i4 out)
+//
+// SPEC 4 rules 2-3 on each ray's object hits (sorted, none beyond the closing hit + slack),
+// what sceneforge.layers._apply_rules does with whole-array operations, here in one pass
+// over the hits to find the visible instances (each ray's first object hit) and one more
+// for the layers. Every value is computed as there: depths are the float64 product
+// t * depth_scale rounded to float32, D3's test is t >= d2 - same_instance in float64. The
+// output arrays come filled with their "none" values (NaN, 0, -1).
+PyObject* layer_rules(PyObject*, PyObject* args) {
+    PyObject *offsets_o, *t_o, *inst_o, *ct_o, *ci_o, *scale_o, *cat_o, *depth_o, *ocat_o, *oinst_o;
+    double same_instance;
+    if (!PyArg_ParseTuple(args, "OOOOOOOdOOO", &offsets_o, &t_o, &inst_o, &ct_o, &ci_o, &scale_o, &cat_o,
+                          &same_instance, &depth_o, &ocat_o, &oinst_o))
+        return nullptr;
+    Buffer bo, bt, bi, bct, bci, bs, bc, bd, bocat, boinst;
+    if (!get_buffer(offsets_o, bo, sizeof(int64_t), -1, "offsets")) return nullptr;
+    const Py_ssize_t n = bo.view.len / static_cast<Py_ssize_t>(sizeof(int64_t)) - 1;
+    if (n < 0) {
+        PyErr_SetString(PyExc_ValueError, "offsets must have n_rays + 1 items");
+        return nullptr;
+    }
+    const int64_t* offsets = static_cast<const int64_t*>(bo.view.buf);
+    const Py_ssize_t k = offsets[n];
+    if (!get_buffer(t_o, bt, sizeof(double), k, "t") || !get_buffer(inst_o, bi, sizeof(int32_t), k, "instance") ||
+        !get_buffer(ct_o, bct, sizeof(double), n, "closing_t") ||
+        !get_buffer(ci_o, bci, sizeof(int32_t), n, "closing_instance") ||
+        !get_buffer(scale_o, bs, sizeof(double), -1, "depth_scale") ||
+        !get_buffer(cat_o, bc, 1, -1, "category"))
+        return nullptr;
+    const Py_ssize_t n_scale = bs.view.len / static_cast<Py_ssize_t>(sizeof(double));
+    if (n_scale != 1 && n_scale != n) {
+        PyErr_Format(PyExc_ValueError, "depth_scale: %zd values for %zd rays", n_scale, n);
+        return nullptr;
+    }
+    for (auto [obj, b, items, name] : {std::tuple{depth_o, &bd, 5 * n * 4, "depth"},
+                                       std::tuple{ocat_o, &bocat, 3 * n, "category out"},
+                                       std::tuple{oinst_o, &boinst, 2 * n * 4, "instance out"}}) {
+        if (PyObject_GetBuffer(obj, &b->view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) != 0) return nullptr;
+        b->held = true;
+        if (b->view.len != items) {
+            PyErr_Format(PyExc_ValueError, "%s: expected %zd bytes, got %zd", name, items, b->view.len);
+            return nullptr;
+        }
+    }
+    const double* t = static_cast<const double*>(bt.view.buf);
+    const int32_t* inst = static_cast<const int32_t*>(bi.view.buf);
+    const double* closing_t = static_cast<const double*>(bct.view.buf);
+    const int32_t* closing_inst = static_cast<const int32_t*>(bci.view.buf);
+    const double* scale = static_cast<const double*>(bs.view.buf);
+    const uint8_t* category = static_cast<const uint8_t*>(bc.view.buf);
+    const int64_t n_inst = bc.view.len;
+    float* depth = static_cast<float*>(bd.view.buf);
+    uint8_t* out_cat = static_cast<uint8_t*>(bocat.view.buf);
+    int32_t* out_inst = static_cast<int32_t*>(boinst.view.buf);
+    bool bad = false;
+    for (Py_ssize_t i = 0; i < k && !bad; ++i) bad = inst[i] < 0 || inst[i] >= n_inst;
+    for (Py_ssize_t r = 0; r < n && !bad; ++r) bad = closing_inst[r] < -1 || closing_inst[r] >= n_inst;
+    for (Py_ssize_t r = 0; r < n && !bad; ++r) bad = offsets[r] > offsets[r + 1] || offsets[r] < 0;
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "layer_rules: an instance index outside the labelled instances, or bad offsets");
+        return nullptr;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    std::vector<char> visible(n_inst, 0);
+    for (Py_ssize_t r = 0; r < n; ++r)
+        if (offsets[r + 1] > offsets[r]) visible[inst[offsets[r]]] = 1;
+    float* D[5];
+    for (int l = 0; l < 5; ++l) D[l] = depth + l * n;
+    for (Py_ssize_t r = 0; r < n; ++r) {
+        const double s = scale[n_scale == 1 ? 0 : r];
+        D[4][r] = static_cast<float>(closing_t[r] * s);
+        out_cat[2 * n + r] = closing_inst[r] >= 0 ? category[closing_inst[r]] : 0;
+        const int64_t lo = offsets[r], hi = offsets[r + 1];
+        if (lo == hi) continue;
+        // D1: the first object hit; D2: the last hit of its instance
+        const int32_t i1 = inst[lo];
+        int64_t last = lo;
+        for (int64_t h = lo + 1; h < hi; ++h)
+            if (inst[h] == i1) last = h;
+        D[0][r] = static_cast<float>(t[lo] * s);
+        D[1][r] = static_cast<float>(t[last] * s);
+        out_cat[r] = category[i1];
+        out_inst[r] = i1;
+        // D3: the first hit of another visible instance at or after D2; D4: its instance's last hit
+        const double from = t[last] - same_instance;
+        int64_t third = -1;
+        for (int64_t h = lo + 1; h < hi; ++h)
+            if (inst[h] != i1 && visible[inst[h]] && t[h] >= from) {
+                third = h;
+                break;
+            }
+        if (third < 0) continue;
+        const int32_t i3 = inst[third];
+        last = third;
+        for (int64_t h = third + 1; h < hi; ++h)
+            if (inst[h] == i3) last = h;
+        D[2][r] = static_cast<float>(t[third] * s);
+        D[3][r] = static_cast<float>(t[last] * s);
+        out_cat[n + r] = category[i3];
+        out_inst[n + r] = i3;
+    }
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+PyMethodDef module_methods[] = {
+    {"layer_rules", layer_rules, METH_VARARGS,
+     "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
+     "depth_out, category_out, instance_out): SPEC 4 rules 2-3, as sceneforge.layers._apply_rules"},
+    {nullptr, nullptr, 0, nullptr},
+};
+
 PyMethodDef engine_methods[] = {
     {"add_scene", reinterpret_cast<PyCFunction>(engine_add_scene), METH_VARARGS,
      "add_scene(members, first_vertex) -> scene id"},
@@ -792,7 +909,7 @@ PyTypeObject EngineType = {PyVarObject_HEAD_INIT(nullptr, 0)};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_embree",
                           "Every hit of a ray in one Embree traversal; see sceneforge.raytrace.embree_backend.",
-                          -1, nullptr};
+                          -1, module_methods};
 
 }  // namespace
 
