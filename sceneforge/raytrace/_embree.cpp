@@ -454,6 +454,43 @@ void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes,
     if (face < 0) t = std::numeric_limits<double>::quiet_NaN(), cos = 0.0;
 }
 
+// closing(scene_ids, n, origins, directions, near) -> (face i8, t f8, instance i4,
+// triangle i8, front_facing bool) bytearrays: each ray's closing_hit over the scenes, what
+// HouseTracer._first_hit (near 0) and _closing make of the engine's nearest faces.
+PyObject* engine_closing(EngineObject* self, PyObject* args) {
+    PyObject *ids, *origins, *directions;
+    Py_ssize_t n;
+    double near;
+    if (!PyArg_ParseTuple(args, "OnOOd", &ids, &n, &origins, &directions, &near)) return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bo, bd;
+    RayRows rays;
+    if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
+    std::vector<int64_t> face(n), triangle(n);
+    std::vector<double> t(n), cos(n);
+    std::vector<int32_t> instance(n);
+    std::vector<char> front(n);
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks((n + kBlock - 1) / kBlock, self->threads, [&](int64_t b) {
+        Collector planes;
+        init_collector(planes, self);
+        const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
+        for (int64_t r = b * kBlock; r < hi; ++r) {
+            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos[r]);
+            const int64_t f = face[r];
+            instance[r] = f >= 0 ? face_instance[f] : -1;
+            triangle[r] = f >= 0 ? f - first_face[instance[r]] : -1;
+            front[r] = cos[r] < 0;
+        }
+    });
+    Py_END_ALLOW_THREADS
+    return Py_BuildValue("(NNNNN)", new_bytearray(face.data(), n * sizeof(int64_t)),
+                         new_bytearray(t.data(), n * sizeof(double)), new_bytearray(instance.data(), n * sizeof(int32_t)),
+                         new_bytearray(triangle.data(), n * sizeof(int64_t)), new_bytearray(front.data(), n));
+}
+
 struct BlockHits {
     std::vector<HitRecord> hits;  // grouped by ray, in ray order
     std::vector<int64_t> counts;  // per ray of the block
@@ -886,10 +923,95 @@ PyObject* layer_rules(PyObject*, PyObject* args) {
     Py_RETURN_NONE;
 }
 
+// ------------------------------------------------------------------ depth -> triangles
+
+// The edge rule of one pixel pair: |d_i - d_j| exceeds a x the footprint of the nearer
+// pixel (sceneforge.depth_mesh._jumps, the same float64 operations).
+inline bool jump(double di, double dj, double fi, double fj, double a) {
+    double near = di <= dj ? fi : fj;
+    near *= a;
+    return std::fabs(di - dj) > near;
+}
+
+// grid_faces(depth (h,w) f8, footprint (h,w) f8, a, diagonal_a) -> bytearray (m,3) i8:
+// sceneforge.depth_mesh.grid_faces in one pass per block shape, the same triangles in the
+// same order (every triangle of the first shape, blocks in row-major order, then the
+// second...). diagonal_a is a * sqrt(2) as Python computes it.
+PyObject* grid_faces(PyObject*, PyObject* args) {
+    PyObject *depth_o, *foot_o;
+    Py_ssize_t h, w;
+    double a, diagonal_a;
+    if (!PyArg_ParseTuple(args, "OOnndd", &depth_o, &foot_o, &h, &w, &a, &diagonal_a)) return nullptr;
+    Buffer bd, bf;
+    if (h < 0 || w < 0 || !get_buffer(depth_o, bd, sizeof(double), h * w, "depth") ||
+        !get_buffer(foot_o, bf, sizeof(double), h * w, "footprint"))
+        return nullptr;
+    const double* D = static_cast<const double*>(bd.view.buf);
+    const double* P = static_cast<const double*>(bf.view.buf);
+    std::vector<int64_t> faces;
+    Py_BEGIN_ALLOW_THREADS
+    if (h >= 2 && w >= 2) {
+        // the block corners 0 = (r, c), 1 = (r, c+1), 2 = (r+1, c), 3 = (r+1, c+1); the four
+        // triangles (0 2 1), (0 3 1), (0 2 3), (1 2 3), as in depth_mesh._TRIANGLES
+        static const int tris[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
+        const int64_t offset[4] = {0, 1, w, w + 1};
+        std::vector<uint8_t> shape_of((h - 1) * (w - 1));  // bit s: the block emits triangle s
+        size_t counts[4] = {0, 0, 0, 0};
+        for (Py_ssize_t r = 0; r + 1 < h; ++r)
+            for (Py_ssize_t c = 0; c + 1 < w; ++c) {
+                const int64_t p[4] = {r * w + c, r * w + c + 1, (r + 1) * w + c, (r + 1) * w + c + 1};
+                double d[4], f[4];
+                bool ok[4];
+                int n_ok = 0;
+                for (int k = 0; k < 4; ++k) {
+                    d[k] = D[p[k]], f[k] = P[p[k]];
+                    ok[k] = std::isfinite(d[k]);
+                    n_ok += ok[k];
+                }
+                uint8_t emit = 0;
+                if (n_ok == 4) {
+                    const bool along_03 = std::fabs(d[0] - d[3]) < std::fabs(d[1] - d[2]);
+                    emit = along_03 ? (2 | 4) : (1 | 8);
+                } else if (n_ok == 3) {
+                    emit = !ok[3] ? 1 : !ok[2] ? 2 : !ok[1] ? 4 : 8;
+                }
+                if (!emit) continue;
+                for (int s = 0; s < 4; ++s) {
+                    if (!(emit & (1 << s))) continue;
+                    for (int k = 0; k < 3; ++k) {
+                        int i = tris[s][k], j = tris[s][(k + 1) % 3];
+                        if (i > j) std::swap(i, j);
+                        const bool diagonal = (i == 0 && j == 3) || (i == 1 && j == 2);
+                        if (jump(d[i], d[j], f[i], f[j], diagonal ? diagonal_a : a)) {
+                            emit &= static_cast<uint8_t>(~(1 << s));
+                            break;
+                        }
+                    }
+                }
+                shape_of[r * (w - 1) + c] = emit;
+                for (int s = 0; s < 4; ++s) counts[s] += (emit >> s) & 1;
+            }
+        faces.resize(3 * (counts[0] + counts[1] + counts[2] + counts[3]));
+        size_t k = 0;
+        for (int s = 0; s < 4; ++s)
+            for (Py_ssize_t r = 0; r + 1 < h; ++r)
+                for (Py_ssize_t c = 0; c + 1 < w; ++c) {
+                    if (!(shape_of[r * (w - 1) + c] & (1 << s))) continue;
+                    const int64_t top_left = r * w + c;
+                    for (int v = 0; v < 3; ++v) faces[k++] = top_left + offset[tris[s][v]];
+                }
+    }
+    Py_END_ALLOW_THREADS
+    return new_bytearray(faces.data(), faces.size() * sizeof(int64_t));
+}
+
 PyMethodDef module_methods[] = {
     {"layer_rules", layer_rules, METH_VARARGS,
      "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
      "depth_out, category_out, instance_out): SPEC 4 rules 2-3, as sceneforge.layers._apply_rules"},
+    {"grid_faces", grid_faces, METH_VARARGS,
+     "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
+     "sceneforge.depth_mesh.grid_faces"},
     {nullptr, nullptr, 0, nullptr},
 };
 
@@ -898,6 +1020,8 @@ PyMethodDef engine_methods[] = {
      "add_scene(members, first_vertex) -> scene id"},
     {"first", reinterpret_cast<PyCFunction>(engine_first), METH_VARARGS,
      "first(scene_ids, n, origins, directions) -> nearest face per ray (int64 bytes)"},
+    {"closing", reinterpret_cast<PyCFunction>(engine_closing), METH_VARARGS,
+     "closing(scene_ids, n, origins, directions, near) -> closing hit arrays (bytes)"},
     {"collect", reinterpret_cast<PyCFunction>(engine_collect), METH_VARARGS,
      "collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw) -> hit arrays (bytes)"},
     {"closest", reinterpret_cast<PyCFunction>(engine_closest), METH_VARARGS,
