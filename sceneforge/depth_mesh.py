@@ -22,12 +22,14 @@ from functools import lru_cache
 import numpy as np
 
 try:
+    from .raytrace._embree import compact_faces as _compiled_compact
     from .raytrace._embree import grid_faces as _compiled_grid_faces
 except ImportError:  # the extension is not built: numpy only
-    _compiled_grid_faces = None
+    _compiled_grid_faces = _compiled_compact = None
 
-#: whether :func:`grid_faces` runs compiled (one pass over the blocks in sceneforge's
-#: extension; the numpy version is the reference, and the tests hold the two equal)
+#: whether :func:`grid_faces` and :func:`compact` run compiled (a pass or two over the
+#: blocks and faces in sceneforge's extension; the numpy versions are the reference, and
+#: the tests hold the two equal)
 COMPILED = _compiled_grid_faces is not None
 
 # Corners of a 2×2 block: 0 = (row, col), 1 = (row, col + 1), 2 = (row + 1, col),
@@ -117,14 +119,20 @@ def _jumps(d_i, d_j, f_i, f_j, a: float) -> np.ndarray:
     return np.abs(d_i - d_j) > near
 
 
-def compact(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def compact(points: np.ndarray, faces: np.ndarray, compiled: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """An indexed mesh of the pixels ``faces`` use, in pixel order.
 
-    points : (H*W, 3) float  the point of every pixel, row-major
-    faces  : (m, 3) int      pixel indices (:func:`grid_faces`)
+    points   : (H*W, 3) float  the point of every pixel, row-major
+    faces    : (m, 3) int      pixel indices (:func:`grid_faces`)
+    compiled : as for :func:`grid_faces`
     Returns vertices (k, 3) float64 and faces (m, 3) int64 indexing them.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if COMPILED if compiled is None else compiled:
+        if _compiled_compact is None:
+            raise RuntimeError("the compiled compact needs sceneforge's Embree extension, which is not built")
+        used, renumbered = _compiled_compact(np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3), len(points))
+        return points[np.frombuffer(used, dtype=np.int64)], np.frombuffer(renumbered, dtype=np.int64).reshape(-1, 3)
     used = np.zeros(len(points), dtype=bool)
     used[faces.ravel()] = True
     renumber = np.cumsum(used) - 1

@@ -216,3 +216,19 @@ def test_grid_faces_match_the_plain_block_by_block_rule(seed, compiled):
         np.testing.assert_array_equal(faces, plain_grid_faces(depth, footprint, a))
         reference = depth_mesh.grid_faces(depth, footprint, a, compiled=False)
         assert faces.dtype == reference.dtype and faces.tobytes() == reference.tobytes()
+
+
+@pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_compact_equals_the_numpy_one(seed):
+    """The pixels the faces use, in pixel order, and the faces renumbered: the same arrays
+    from both kernels, unused pixels and repeated corners included."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    faces = rng.integers(0, n, (int(rng.integers(0, 200)), 3))
+    points = rng.normal(size=(n, 3))
+    got, want = (depth_mesh.compact(points, faces, compiled=c) for c in (True, False))
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    with pytest.raises(IndexError):
+        depth_mesh.compact(points, np.array([[0, 1, n]]), compiled=True)

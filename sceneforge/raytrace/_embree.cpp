@@ -948,15 +948,15 @@ PyObject* grid_faces(PyObject*, PyObject* args) {
         return nullptr;
     const double* D = static_cast<const double*>(bd.view.buf);
     const double* P = static_cast<const double*>(bf.view.buf);
-    std::vector<int64_t> faces;
+    // pass 1 decides every block (a bit per triangle shape it keeps), pass 2 writes the
+    // faces straight into the result, shape by shape
+    std::vector<uint8_t> shape_of(h >= 2 && w >= 2 ? (h - 1) * (w - 1) : 0);
+    size_t counts[4] = {0, 0, 0, 0};
+    static const int tris[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
     Py_BEGIN_ALLOW_THREADS
     if (h >= 2 && w >= 2) {
         // the block corners 0 = (r, c), 1 = (r, c+1), 2 = (r+1, c), 3 = (r+1, c+1); the four
         // triangles (0 2 1), (0 3 1), (0 2 3), (1 2 3), as in depth_mesh._TRIANGLES
-        static const int tris[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
-        const int64_t offset[4] = {0, 1, w, w + 1};
-        std::vector<uint8_t> shape_of((h - 1) * (w - 1));  // bit s: the block emits triangle s
-        size_t counts[4] = {0, 0, 0, 0};
         for (Py_ssize_t r = 0; r + 1 < h; ++r)
             for (Py_ssize_t c = 0; c + 1 < w; ++c) {
                 const int64_t p[4] = {r * w + c, r * w + c + 1, (r + 1) * w + c, (r + 1) * w + c + 1};
@@ -991,18 +991,66 @@ PyObject* grid_faces(PyObject*, PyObject* args) {
                 shape_of[r * (w - 1) + c] = emit;
                 for (int s = 0; s < 4; ++s) counts[s] += (emit >> s) & 1;
             }
-        faces.resize(3 * (counts[0] + counts[1] + counts[2] + counts[3]));
-        size_t k = 0;
-        for (int s = 0; s < 4; ++s)
-            for (Py_ssize_t r = 0; r + 1 < h; ++r)
-                for (Py_ssize_t c = 0; c + 1 < w; ++c) {
-                    if (!(shape_of[r * (w - 1) + c] & (1 << s))) continue;
-                    const int64_t top_left = r * w + c;
-                    for (int v = 0; v < 3; ++v) faces[k++] = top_left + offset[tris[s][v]];
-                }
     }
     Py_END_ALLOW_THREADS
-    return new_bytearray(faces.data(), faces.size() * sizeof(int64_t));
+    const size_t m = counts[0] + counts[1] + counts[2] + counts[3];
+    PyObject* out = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(3 * m * sizeof(int64_t)));
+    if (!out) return nullptr;
+    int64_t* faces = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out));
+    Py_BEGIN_ALLOW_THREADS
+    const int64_t offset[4] = {0, 1, w, w + 1};
+    int64_t* cursor[4];  // where the next triangle of each shape goes
+    cursor[0] = faces;
+    for (int s = 1; s < 4; ++s) cursor[s] = cursor[s - 1] + 3 * counts[s - 1];
+    for (Py_ssize_t r = 0; r + 1 < h && m; ++r) {
+        const uint8_t* row = shape_of.data() + r * (w - 1);
+        for (Py_ssize_t c = 0; c + 1 < w; ++c) {
+            const uint8_t emit = row[c];
+            if (!emit) continue;
+            const int64_t top_left = r * w + c;
+            for (int s = 0; s < 4; ++s) {
+                if (!(emit & (1 << s))) continue;
+                for (int v = 0; v < 3; ++v) *cursor[s]++ = top_left + offset[tris[s][v]];
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    return out;
+}
+
+// compact_faces(faces (m,3) i8, n_pixels) -> (used (k,) i8, faces (m,3) i8) bytearrays: the
+// pixels the faces use, ascending, and the faces renumbered to index them
+// (sceneforge.depth_mesh.compact without the points).
+PyObject* compact_faces(PyObject*, PyObject* args) {
+    PyObject* faces_o;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "On", &faces_o, &n)) return nullptr;
+    Buffer bf;
+    if (n < 0 || !get_buffer(faces_o, bf, 3 * sizeof(int64_t), -1, "faces")) return nullptr;
+    const int64_t* F = static_cast<const int64_t*>(bf.view.buf);
+    const Py_ssize_t m3 = bf.view.len / static_cast<Py_ssize_t>(sizeof(int64_t));
+    for (Py_ssize_t i = 0; i < m3; ++i)
+        if (F[i] < 0 || F[i] >= n) {
+            PyErr_SetString(PyExc_IndexError, "compact_faces: a face corner outside the pixels");
+            return nullptr;
+        }
+    std::vector<int64_t> renumber(n, 0);
+    for (Py_ssize_t i = 0; i < m3; ++i) renumber[F[i]] = 1;
+    int64_t k = 0;
+    for (Py_ssize_t p = 0; p < n; ++p) renumber[p] = renumber[p] ? k++ : -1;
+    PyObject* used_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(k * sizeof(int64_t)));
+    PyObject* faces_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(m3 * sizeof(int64_t)));
+    if (!used_b || !faces_b) {
+        Py_XDECREF(used_b);
+        Py_XDECREF(faces_b);
+        return nullptr;
+    }
+    int64_t* used = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(used_b));
+    int64_t* out = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(faces_b));
+    for (Py_ssize_t p = 0; p < n; ++p)
+        if (renumber[p] >= 0) used[renumber[p]] = p;
+    for (Py_ssize_t i = 0; i < m3; ++i) out[i] = renumber[F[i]];
+    return Py_BuildValue("(NN)", used_b, faces_b);
 }
 
 PyMethodDef module_methods[] = {
@@ -1012,6 +1060,9 @@ PyMethodDef module_methods[] = {
     {"grid_faces", grid_faces, METH_VARARGS,
      "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
      "sceneforge.depth_mesh.grid_faces"},
+    {"compact_faces", compact_faces, METH_VARARGS,
+     "compact_faces(faces, n_pixels) -> (used pixels, renumbered faces) int64 (bytes), as "
+     "sceneforge.depth_mesh.compact"},
     {nullptr, nullptr, 0, nullptr},
 };
 
