@@ -67,10 +67,7 @@ struct HitRecord {
 struct Collector {
     SFContextBase base;
     const int64_t* face_base;  // first face (house index) of each geometry of the scene
-    const double* normal_x;
-    const double* normal_y;
-    const double* normal_z;
-    const double* offset;
+    const double* plane;      // (m, 4): each face's unit normal x, y, z and offset, together
     double ox, oy, oz;       // the ray, float64, unshifted
     double dx, dy, dz;
     double cutoff;           // hits farther than this are dropped (inf: none)
@@ -102,9 +99,9 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
             c->out->push_back({0.0, 0.0, face});
             continue;
         }
-        const double numerator = c->offset[face] - (c->normal_x[face] * c->ox + c->normal_y[face] * c->oy +
-                                                    c->normal_z[face] * c->oz);
-        const double cos = c->normal_x[face] * c->dx + c->normal_y[face] * c->dy + c->normal_z[face] * c->dz;
+        const double* q = c->plane + 4 * face;
+        const double numerator = q[3] - (q[0] * c->ox + q[1] * c->oy + q[2] * c->oz);
+        const double cos = q[0] * c->dx + q[1] * c->dy + q[2] * c->dz;
         const double t = numerator / cos;
         if (!std::isfinite(t) || !(t <= c->cutoff)) continue;
         c->out->push_back({t, cos, face});
@@ -122,8 +119,9 @@ struct EngineObject {
     int threads;
     std::deque<Scene>* scenes;  // a deque: adding a scene keeps the others in place (queries run without the GIL)
     // float64 copies of the house the callbacks read (plane terms, triangles)
-    std::vector<double>* normal_xyz;  // (3, m)
-    std::vector<double>* offset;      // (m,)
+    // (m, 4) each face's normal x, y, z and plane offset side by side (a hit reads one
+    // cache line, not four)
+    std::vector<double>* planes;
     std::vector<int32_t>* instance;   // (m,) owning instance of each face
     std::vector<int64_t>* first_face; // (n_instances + 1,)
     std::vector<double>* vertices;    // (v, 3) float64, unshifted
@@ -270,11 +268,7 @@ void init_collector(Collector& c, const EngineObject* e) {
     rtcInitIntersectContext(&c.base);
     c.base.filter = collect_filter;
 #endif
-    const int64_t m = static_cast<int64_t>(e->offset->size());
-    c.normal_x = e->normal_xyz->data();
-    c.normal_y = c.normal_x + m;
-    c.normal_z = c.normal_y + m;
-    c.offset = e->offset->data();
+    c.plane = e->planes->data();
 }
 
 // ------------------------------------------------------------------ the engine type
@@ -284,8 +278,7 @@ void engine_dealloc(EngineObject* self) {
         for (auto& s : *self->scenes) rtcReleaseScene(s.scene);
         delete self->scenes;
     }
-    delete self->normal_xyz;
-    delete self->offset;
+    delete self->planes;
     delete self->instance;
     delete self->first_face;
     delete self->vertices;
@@ -300,6 +293,22 @@ bool copy_buffer(PyObject* obj, std::vector<T>*& out, Py_ssize_t count, const ch
     if (!get_buffer(obj, b, sizeof(T), count, name)) return false;
     const T* p = static_cast<const T*>(b.view.buf);
     out = new std::vector<T>(p, p + b.view.len / sizeof(T));
+    return true;
+}
+
+// The (m, 4) plane table from normal_xyz (3, m) and offset (m,).
+bool get_planes(PyObject* normal_xyz, PyObject* offset, Py_ssize_t m, std::vector<double>*& out) {
+    Buffer bn, bo;
+    if (!get_buffer(normal_xyz, bn, sizeof(double), 3 * m, "normal_xyz") ||
+        !get_buffer(offset, bo, sizeof(double), m, "offset"))
+        return false;
+    const double* n = static_cast<const double*>(bn.view.buf);
+    const double* off = static_cast<const double*>(bo.view.buf);
+    out = new std::vector<double>(4 * m);
+    for (Py_ssize_t f = 0; f < m; ++f) {
+        double* q = out->data() + 4 * f;
+        q[0] = n[f], q[1] = n[m + f], q[2] = n[2 * m + f], q[3] = off[f];
+    }
     return true;
 }
 
@@ -322,8 +331,7 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
     const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
     if (!copy_buffer(instance, self->instance, m, "instance") ||
         !copy_buffer(first_face, self->first_face, -1, "first_face") ||
-        !copy_buffer(normal_xyz, self->normal_xyz, 3 * m, "normal_xyz") ||
-        !copy_buffer(offset, self->offset, m, "offset"))
+        !get_planes(normal_xyz, offset, m, self->planes))
         return -1;
     Buffer bs;
     if (!get_buffer(shift, bs, sizeof(double), 3, "shift")) return -1;
@@ -440,9 +448,9 @@ void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes,
                  double near, const Collector& planes, int64_t& face, double& t, double& cos) {
     face = nearest_face(e, scenes, o, d);
     auto plane = [&](int64_t f) {
-        const double numerator = planes.offset[f] - (planes.normal_x[f] * o[0] + planes.normal_y[f] * o[1] +
-                                                     planes.normal_z[f] * o[2]);
-        cos = planes.normal_x[f] * d[0] + planes.normal_y[f] * d[1] + planes.normal_z[f] * d[2];
+        const double* q = planes.plane + 4 * f;
+        const double numerator = q[3] - (q[0] * o[0] + q[1] * o[1] + q[2] * o[2]);
+        cos = q[0] * d[0] + q[1] * d[1] + q[2] * d[2];
         t = numerator / cos;
     };
     if (face >= 0) plane(face);
@@ -616,9 +624,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         BlockHits& blk = blocks[b];
         std::vector<std::pair<double, int64_t>> keyed;  // (key, position in the ray's hits)
         std::vector<HitRecord> sorted;
-        std::vector<HitRecord> kept;
-        kept.reserve(blk.hits.size());
-        size_t h = 0;
+        size_t h = 0, written = 0;  // kept hits go back into blk.hits, never past the ray being read
         for (size_t j = 0; j < blk.counts.size(); ++j) {
             const int64_t count = blk.counts[j];
             const double r = static_cast<double>(b * kBlock + static_cast<int64_t>(j));
@@ -627,10 +633,22 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             if (count == 0) continue;
             keyed.resize(count);
             for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
-            std::sort(keyed.begin(), keyed.end(), [&](const auto& x, const auto& y) {
+            // hits equal in (key, face) are the same record, so every sort by (key, face)
+            // gives the same result; insertion sort for the few hits of most rays
+            auto before = [&](const std::pair<double, int64_t>& x, const std::pair<double, int64_t>& y) {
                 if (x.first != y.first) return x.first < y.first;
                 return hits[x.second].face < hits[y.second].face;
-            });
+            };
+            if (count <= 24) {
+                for (int64_t k = 1; k < count; ++k) {
+                    const auto item = keyed[k];
+                    int64_t i = k;
+                    for (; i > 0 && before(item, keyed[i - 1]); --i) keyed[i] = keyed[i - 1];
+                    keyed[i] = item;
+                }
+            } else {
+                std::sort(keyed.begin(), keyed.end(), before);
+            }
             sorted.resize(count);
             for (int64_t k = 0; k < count; ++k) sorted[k] = hits[keyed[k].second];
             int64_t n_kept = 0;
@@ -644,11 +662,11 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
                         repeat = true;
                         break;
                     }
-                if (!repeat) kept.push_back(sorted[k]), ++n_kept;
+                if (!repeat) blk.hits[written++] = sorted[k], ++n_kept;
             }
             blk.counts[j] = n_kept;
         }
-        blk.hits.swap(kept);
+        blk.hits.resize(written);
     });
     Py_END_ALLOW_THREADS
 
