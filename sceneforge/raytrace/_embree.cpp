@@ -19,6 +19,11 @@
 //
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
+//
+// Three kernels that read no scene live here too, as the one compiled part of sceneforge:
+// the layer rules of SPEC 4 (sceneforge.layers.apply_rules) and the depth -> triangles
+// block rule and compaction (sceneforge.depth_mesh.grid_faces, compact). Each repeats its
+// numpy reference operation for operation; the tests hold them equal bit for bit.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
