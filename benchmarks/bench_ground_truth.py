@@ -5,7 +5,9 @@ The limit is plain Embree doing the same ray queries, compiled from
 ``benchmarks/native_all_hits.cpp`` at run time with the system compiler: per view, the
 frontal 320×240 rays and the overhead 300×300 rays, each a first-hit pass against the
 closing instances and one traversal per ray of the objects up to the closing hit whose
-filter callback collects every hit, sorted per ray into CSR arrays. sceneforge's time is
+filter callback collects every hit, sorted per ray into CSR arrays; and the envelope
+surface's D5 rays (the view at ``ViewMeshConfig.envelope_upscale`` times its resolution,
+480×360), a first-hit pass against the envelope. sceneforge's time is
 its whole ground truth (tracing, layer rules, normals, overhead camera and truth, mesh
 clipping) with each engine, on the same cameras, at the same thread count, so the ratio
 is everything sceneforge does beyond the unavoidable traversals.
@@ -14,6 +16,10 @@ Houses: a bundled toy house, the breakfast room subdivided to >= 1 M triangles (
 ../shared/scenes is present), and a synthetic furnished room of >= 1 M triangles with
 several hits per ray. Then the throughput of two worker processes, and the peak memory of
 one worker over many views.
+
+Run with one OpenBLAS thread, as the render pipeline's workers are (numpy's thread pool
+costs more than it saves on a view's small matrix products, and fights the tracing threads
+for the cores); set ``OPENBLAS_NUM_THREADS`` to override.
 
     python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--quick]
 """
@@ -31,18 +37,20 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-import trimesh
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads, as in the pipeline's workers
 
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras
-from sceneforge.conventions import tol
-from sceneforge.frustum import view_mesh
-from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance
-from sceneforge.layers import frontal_layers, instance_labels
-from sceneforge.overhead import overhead_camera, overhead_instances, overhead_truth
-from sceneforge.raytrace import HouseTracer
-from sceneforge.raytrace.embree_backend import AVAILABLE as EMBREE_EXTENSION
-from sceneforge.view import ViewConfig, compute_view
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+from sceneforge.cameras import CameraSamplerConfig, sample_cameras  # noqa: E402
+from sceneforge.conventions import tol  # noqa: E402
+from sceneforge.frustum import view_mesh  # noqa: E402
+from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance  # noqa: E402
+from sceneforge.layers import frontal_layers, instance_labels  # noqa: E402
+from sceneforge.overhead import overhead_camera, overhead_instances, overhead_truth  # noqa: E402
+from sceneforge.raytrace import HouseTracer  # noqa: E402
+from sceneforge.raytrace.embree_backend import AVAILABLE as EMBREE_EXTENSION  # noqa: E402
+from sceneforge.view import ViewConfig, compute_view  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 BREAKFAST = HERE.parents[1] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
@@ -126,8 +134,9 @@ def native_program(workdir: Path) -> Path:
 
 
 def view_queries(house: House, cameras, tracer: HouseTracer, config: ViewConfig):
-    """Each view's two queries as sceneforge makes them: (rays (n, 6) float64, objects,
-    closing (n_instances,) bool, near)."""
+    """Each view's three queries as sceneforge makes them: (rays (n, 6) float64, objects,
+    closing (n_instances,) bool, near); the envelope surface's D5 rays have no objects (a
+    first-hit query only)."""
     _, envelope = instance_labels(house)
     seen = overhead_instances(house, config.overhead)
     out = []
@@ -138,6 +147,10 @@ def view_queries(house: House, cameras, tracer: HouseTracer, config: ViewConfig)
         o, d, _ = top.rays()
         out.append((np.c_[o, np.broadcast_to(d, o.shape)], seen & ~envelope, seen & envelope,
                     config.overhead.floor_clearance))
+        if config.with_mesh:
+            up = config.mesh.envelope_upscale
+            o, d, _ = cam.resized(round(cam.width * up), round(cam.height * up)).rays()
+            out.append((np.c_[np.broadcast_to(o, d.shape), d], np.zeros_like(envelope), envelope, 0.0))
     return out
 
 

@@ -8,8 +8,9 @@
 // ray's hits are sorted by distance and written out in CSR layout. No float64 distances,
 // no merging, no layer rules: only the traversals and the hit lists.
 //
-//   native_all_hits INPUT    prints: "<best seconds> <its CPU seconds> <hits> <rays>" for all
-//                            the queries, from the round with the best wall time
+//   native_all_hits INPUT    prints: "<best seconds> <its CPU seconds> <hits> <rays>": the
+//                            seconds for all the queries, from the round with the best wall
+//                            time; the hits and rays of the queries with object instances
 //
 // INPUT (little-endian): int64 n_vertices, n_faces, n_instances, n_queries, rounds, threads;
 // float32 vertices (n_vertices, 3); uint32 faces (n_faces, 3); int64 first_vertex and
@@ -69,6 +70,7 @@ struct Query {
     std::vector<float> rays;
     int64_t n = 0;
     RTCScene object_scene = nullptr, closing_scene = nullptr;
+    bool first_only = false;  // no object instance: the closing hit is the query's answer
 };
 
 template <class T>
@@ -137,7 +139,11 @@ int main(int argc, char** argv) {
         scenes[mask] = s;
         return s;
     };
-    for (auto& q : queries) q.object_scene = scene_of(q.objects), q.closing_scene = scene_of(q.closing);
+    for (auto& q : queries) {
+        q.first_only = std::find(q.objects.begin(), q.objects.end(), 1) == q.objects.end();
+        if (!q.first_only) q.object_scene = scene_of(q.objects);
+        q.closing_scene = scene_of(q.closing);
+    }
 
     const int64_t block = 512;
     double best = std::numeric_limits<double>::infinity(), best_cpu = 0;
@@ -177,6 +183,12 @@ int main(int argc, char** argv) {
                         rtcInitIntersectContext(&plain);
                         rtcIntersect1(q.closing_scene, &plain, &rh);
 #endif
+                        if (q.first_only) {
+                            const bool hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
+                            if (hit) out[b].push_back({rh.ray.tfar, rh.hit.geomID, rh.hit.primID});
+                            counts[b][r - lo] = hit ? 1 : 0;
+                            continue;
+                        }
                         const float cut = rh.hit.geomID == RTC_INVALID_GEOMETRY_ID ? rh.ray.tfar : rh.ray.tfar + q.slack;
                         ray_hits.clear();
                         Context c;
@@ -212,13 +224,12 @@ int main(int argc, char** argv) {
             std::vector<float> t_hit(k);
             std::vector<int64_t> face(k);
             k = 0;
-            const std::vector<int64_t>& base = first_face_of[q.object_scene];
+            const std::vector<int64_t>& base = first_face_of[q.first_only ? q.closing_scene : q.object_scene];
             for (int64_t b = 0; b < n_blocks; ++b) {
                 for (size_t j = 0; j < counts[b].size(); ++j) offsets[b * block + j + 1] = offsets[b * block + j] + counts[b][j];
                 for (const Hit& h : out[b]) t_hit[k] = h.t, face[k] = base[h.geom] + h.prim, ++k;
             }
-            hits_this_round += k;
-            rays_this_round += q.n;
+            if (!q.first_only) hits_this_round += k, rays_this_round += q.n;
         }
         const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
         if (seconds < best) best = seconds, best_cpu = cpu_now() - cpu_start;

@@ -17,8 +17,20 @@ is chosen before the edge rule, so a block may keep one triangle, as in the refe
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
+
+try:
+    from .raytrace._embree import compact_faces as _compiled_compact
+    from .raytrace._embree import grid_faces as _compiled_grid_faces
+except ImportError:  # the extension is not built: numpy only
+    _compiled_grid_faces = _compiled_compact = None
+
+#: whether :func:`grid_faces` and :func:`compact` run compiled (a pass or two over the
+#: blocks and faces in sceneforge's extension; the numpy versions are the reference, and
+#: the tests hold the two equal)
+COMPILED = _compiled_grid_faces is not None
 
 # Corners of a 2×2 block: 0 = (row, col), 1 = (row, col + 1), 2 = (row + 1, col),
 # 3 = (row + 1, col + 1). The reference's four triangles, all wound the same way (their
@@ -30,12 +42,14 @@ _DIAGONALS = frozenset({(0, 3), (1, 2)})
 _CORNER_OFFSETS = ((0, 0), (0, 1), (1, 0), (1, 1))
 
 
-def grid_faces(depth: np.ndarray, footprint: np.ndarray, a: float) -> np.ndarray:
+def grid_faces(depth: np.ndarray, footprint: np.ndarray, a: float, compiled: bool | None = None) -> np.ndarray:
     """The triangles of an image of depths, by the 2×2 block rule and the edge rule.
 
     depth     : (H, W) float  the depth the edge rule compares; NaN = no vertex
     footprint : (H, W) float  metric size of each pixel at its depth, metres
     a         : float         edge rule factor
+    compiled  : the compiled kernel (True), the numpy reference (False), or the compiled one
+                where the extension is built (None); the same triangles either way
 
     Returns
     -------
@@ -46,9 +60,23 @@ def grid_faces(depth: np.ndarray, footprint: np.ndarray, a: float) -> np.ndarray
     """
     depth = np.asarray(depth, dtype=np.float64)
     footprint = np.asarray(footprint, dtype=np.float64)
+    if depth.ndim != 2 or footprint.shape != depth.shape:
+        raise ValueError(f"depth and footprint must be the same (H, W), got {depth.shape} and {footprint.shape}")
     h, w = depth.shape
     if h < 2 or w < 2:
         return np.zeros((0, 3), dtype=np.int64)
+    if COMPILED if compiled is None else compiled:
+        if _compiled_grid_faces is None:
+            raise RuntimeError("the compiled grid_faces needs sceneforge's Embree extension, which is not built")
+        faces = _compiled_grid_faces(np.ascontiguousarray(depth), np.ascontiguousarray(footprint), h, w,
+                                     float(a), float(a) * math.sqrt(2.0))
+        return np.frombuffer(faces, dtype=np.int64).reshape(-1, 3)
+    return _numpy_grid_faces(depth, footprint, a)
+
+
+def _numpy_grid_faces(depth: np.ndarray, footprint: np.ndarray, a: float) -> np.ndarray:
+    """:func:`grid_faces` with whole-image numpy operations: the reference."""
+    h, w = depth.shape
     valid = np.isfinite(depth)
     with np.errstate(invalid="ignore"):
         # The edge rule, per pixel pair: the jump against the nearer pixel's footprint. Each
@@ -91,14 +119,20 @@ def _jumps(d_i, d_j, f_i, f_j, a: float) -> np.ndarray:
     return np.abs(d_i - d_j) > near
 
 
-def compact(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def compact(points: np.ndarray, faces: np.ndarray, compiled: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """An indexed mesh of the pixels ``faces`` use, in pixel order.
 
-    points : (H*W, 3) float  the point of every pixel, row-major
-    faces  : (m, 3) int      pixel indices (:func:`grid_faces`)
+    points   : (H*W, 3) float  the point of every pixel, row-major
+    faces    : (m, 3) int      pixel indices (:func:`grid_faces`)
+    compiled : as for :func:`grid_faces`
     Returns vertices (k, 3) float64 and faces (m, 3) int64 indexing them.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if COMPILED if compiled is None else compiled:
+        if _compiled_compact is None:
+            raise RuntimeError("the compiled compact needs sceneforge's Embree extension, which is not built")
+        used, renumbered = _compiled_compact(np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3), len(points))
+        return points[np.frombuffer(used, dtype=np.int64)], np.frombuffer(renumbered, dtype=np.int64).reshape(-1, 3)
     used = np.zeros(len(points), dtype=bool)
     used[faces.ravel()] = True
     renumber = np.cumsum(used) - 1
@@ -113,9 +147,20 @@ def perspective_points(depth: np.ndarray, K: np.ndarray, cam_to_world: np.ndarra
     K = np.asarray(K, dtype=np.float64)
     pose = np.asarray(cam_to_world, dtype=np.float64)
     h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # z = 1
+    rays = _pixel_rays(K.tobytes(), h, w)  # z = 1
     return (rays * depth[..., None]) @ pose[:3, :3].T + pose[:3, 3]
+
+
+@lru_cache(maxsize=8)
+def _pixel_rays(K_bytes: bytes, h: int, w: int) -> np.ndarray:
+    """(h, w, 3) float64 camera-frame point at planar depth 1 of each pixel centre of
+    intrinsics ``K`` (its float64 bytes); read-only, shared by every view with these
+    intrinsics (a render's views differ only in pose)."""
+    K = np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3)
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T
+    rays.flags.writeable = False
+    return rays
 
 
 def perspective_faces(depth: np.ndarray, K: np.ndarray, a: float) -> np.ndarray:

@@ -11,8 +11,10 @@ Per pixel, from the ray's hits sorted by distance ``t``:
    last hit of D3's instance; ``D5`` = first envelope hit.
 
 Every distance comparison is made along the ray (``t``); depths are then converted to
-planar depth. The rules run on whole arrays of hits with segment operations, never a
-Python loop over rays.
+planar depth. The rules run in sceneforge's compiled extension where it is built (one pass
+over each ray's sorted hits, :func:`sceneforge.raytrace._embree.layer_rules`), else on
+whole arrays of hits with numpy segment operations, never a Python loop over rays; the
+numpy version is the reference, and the tests hold the two equal on every pixel.
 """
 
 from __future__ import annotations
@@ -23,6 +25,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .conventions import CLASS_LAYERS, ENVELOPE_LAYER, MASK_LAYERS, tol
+
+try:
+    from .raytrace._embree import layer_rules as _compiled_rules
+except ImportError:  # the extension is not built: the numpy rules
+    _compiled_rules = None
+
+#: whether the layer rules run compiled (see :func:`apply_rules`)
+COMPILED_RULES = _compiled_rules is not None
 
 if TYPE_CHECKING:
     from .cameras import Camera
@@ -136,8 +146,10 @@ def layers_from_hits(
     closing_inst[ray[e]] = inst[e]
     cutoff = np.where(np.isnan(closing_t), np.inf, closing_t + tol.envelope_slack)
     obj = ~envelope & (t <= cutoff[ray])
-    return _apply_rules(ray[obj], t[obj], inst[obj], closing_t, closing_inst, depth_scale,
-                        inst_category, shape, normals)
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(ray[obj], minlength=n), out=offsets[1:])
+    return apply_rules(offsets, t[obj], inst[obj], closing_t, closing_inst, depth_scale,
+                       inst_category, shape, normals)
 
 
 def layers_from_frontal(
@@ -153,8 +165,8 @@ def layers_from_frontal(
     objects, closing = hits.objects, hits.closing
     if len(closing.t) != n:
         raise ValueError(f"closing hits are for {len(closing.t)} rays, expected {n}")
-    return _apply_rules(objects.ray_ids(), objects.t, objects.instance, closing.t, closing.instance,
-                        depth_scale, np.asarray(inst_category, dtype=np.uint8), shape, normals)
+    return apply_rules(objects.offsets, objects.t, objects.instance, closing.t, closing.instance,
+                       depth_scale, np.asarray(inst_category, dtype=np.uint8), shape, normals)
 
 
 def _check_view(n_rays: int, depth_scale, shape: tuple[int, int]) -> int:
@@ -168,16 +180,61 @@ def _check_view(n_rays: int, depth_scale, shape: tuple[int, int]) -> int:
     return n
 
 
-def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_category, shape, normals) -> Layers:
+def apply_rules(
+    offsets, t, inst, closing_t, closing_inst, depth_scale, inst_category, shape, normals=None,
+    compiled: bool | None = None,
+) -> Layers:
     """SPEC §4 rules 2–3 on the object hits a ray's closing hit lets through.
 
-    ray, t, inst        : (k,) object hits sorted by ray, then distance; none beyond the
-                          closing hit + slack
+    offsets, t, inst        : object hits in CSR layout (as :class:`~sceneforge.raytrace.Hits`),
+                              sorted per ray by distance; none beyond the closing hit + slack
     closing_t, closing_inst : (H*W,) the closing (first envelope) hit per ray; NaN / -1: none
+    depth_scale, inst_category, shape, normals : as for :func:`layers_from_hits`
+    compiled                : run the compiled rules (True), the numpy reference (False), or
+                              the compiled ones where the extension is built (None); the
+                              same layers either way
     """
+    n = shape[0] * shape[1]
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    if len(offsets) != n + 1:
+        raise ValueError(f"offsets must have {n + 1} entries for a {shape[0]}×{shape[1]} view, got {len(offsets)}")
+    scale = np.asarray(depth_scale, dtype=np.float64).reshape(-1)
+    compiled = COMPILED_RULES if compiled is None else compiled
+    if compiled:
+        if _compiled_rules is None:
+            raise RuntimeError("the compiled layer rules need sceneforge's Embree extension, which is not built")
+        depth = np.full((5, n), np.nan, dtype=np.float32)
+        category = np.zeros((3, n), dtype=np.uint8)
+        instance = np.full((2, n), -1, dtype=np.int32)
+        # a broadcast scale (an orthographic view: all 1) is passed as its one value
+        scale = scale[:1] if len(scale) > 1 and scale.strides[0] == 0 else np.ascontiguousarray(scale)
+        _compiled_rules(
+            offsets, np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(inst, dtype=np.int32),
+            np.ascontiguousarray(closing_t, dtype=np.float64), np.ascontiguousarray(closing_inst, dtype=np.int32),
+            scale, np.ascontiguousarray(inst_category, dtype=np.uint8), float(tol.same_instance_hit),
+            depth, category, instance)
+    else:
+        ray = np.repeat(np.arange(n, dtype=np.int64), np.diff(offsets))
+        depth, category, instance = _numpy_rules(ray, np.asarray(t), np.asarray(inst, dtype=np.int64),
+                                                 np.asarray(closing_t), np.asarray(closing_inst, dtype=np.int64),
+                                                 scale, inst_category, n)
     H, W = shape
-    n = H * W
-    depth_scale = np.asarray(depth_scale, dtype=np.float64).reshape(-1)
+    if normals is None:
+        normal = np.full((3, n), np.nan, dtype=np.float32)
+    else:
+        normal = np.asarray(normals, dtype=np.float32).reshape(n, 3).T.copy()
+    return Layers(
+        depth=depth.reshape(5, H, W),
+        category=category.reshape(3, H, W),
+        instance=instance.reshape(2, H, W),
+        normal=normal.reshape(3, H, W),
+    )
+
+
+def _numpy_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_category, n):
+    """The reference rules (:func:`apply_rules`) on whole arrays: (5, n) float32 depths, (3, n)
+    uint8 classes and (2, n) int32 instances, from the object hits ``ray, t, inst`` (k,)
+    sorted by ray, then distance."""
     depth = np.full((5, n), np.nan, dtype=np.float32)
     category = np.zeros((3, n), dtype=np.uint8)
     instance = np.full((2, n), -1, dtype=np.int32)
@@ -218,17 +275,7 @@ def _apply_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_catego
     category[1, r3] = inst_category[inst[third]]
     instance[0, r1] = inst[first]
     instance[1, r3] = inst[third]
-
-    if normals is None:
-        normal = np.full((3, n), np.nan, dtype=np.float32)
-    else:
-        normal = np.asarray(normals, dtype=np.float32).reshape(n, 3).T.copy()
-    return Layers(
-        depth=depth.reshape(5, H, W),
-        category=category.reshape(3, H, W),
-        instance=instance.reshape(2, H, W),
-        normal=normal.reshape(3, H, W),
-    )
+    return depth, category, instance
 
 
 def first_hit_normals(hits: "Hits", tracer: "HouseTracer", camera: "Camera") -> np.ndarray:

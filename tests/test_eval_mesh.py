@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sceneforge import depth_mesh
 from sceneforge.cameras import Camera, default_intrinsics, look_at_camera
 from sceneforge.evaluate import EvalView, Mesh, concatenate, grid_mesh, height_map_mesh, perspective_mesh
 from sceneforge.evaluate.depth_mesh import MeshingConfig
@@ -199,14 +200,35 @@ def plain_grid_faces(depth, footprint, a):
     return np.array([x[2] for x in out], dtype=np.int64).reshape(-1, 3)
 
 
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not depth_mesh.COMPILED, reason="sceneforge's extension is not built"))], ids=["numpy", "compiled"])
 @pytest.mark.parametrize("seed", range(6))
-def test_grid_faces_match_the_plain_block_by_block_rule(seed):
-    from sceneforge.depth_mesh import grid_faces
-
+def test_grid_faces_match_the_plain_block_by_block_rule(seed, compiled):
+    """Both kernels (the numpy reference and the compiled one), on random depths with holes;
+    and equal to each other, order and dtype included."""
     rng = np.random.default_rng(seed)
     h, w = rng.integers(2, 24, 2)
     depth = 1.0 + rng.random((h, w)) * rng.choice([0.01, 0.3, 3.0])
     depth[rng.random((h, w)) < 0.2] = np.nan
     footprint = 0.01 + 0.04 * rng.random((h, w))
     for a in (7.0, 10.0, 15.0):
-        np.testing.assert_array_equal(grid_faces(depth, footprint, a), plain_grid_faces(depth, footprint, a))
+        faces = depth_mesh.grid_faces(depth, footprint, a, compiled=compiled)
+        np.testing.assert_array_equal(faces, plain_grid_faces(depth, footprint, a))
+        reference = depth_mesh.grid_faces(depth, footprint, a, compiled=False)
+        assert faces.dtype == reference.dtype and faces.tobytes() == reference.tobytes()
+
+
+@pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
+@pytest.mark.parametrize("seed", range(3))
+def test_compiled_compact_equals_the_numpy_one(seed):
+    """The pixels the faces use, in pixel order, and the faces renumbered: the same arrays
+    from both kernels, unused pixels and repeated corners included."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    faces = rng.integers(0, n, (int(rng.integers(0, 200)), 3))
+    points = rng.normal(size=(n, 3))
+    got, want = (depth_mesh.compact(points, faces, compiled=c) for c in (True, False))
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    with pytest.raises(IndexError):
+        depth_mesh.compact(points, np.array([[0, 1, n]]), compiled=True)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from sceneforge import layers as layers_module
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
@@ -407,3 +408,87 @@ def test_engines_agree_on_every_pixel_of_the_breakfast_room():
     fast = frontal_layers(house, camera, HouseTracer(house))
     assert np.isfinite(fast.depth[2]).mean() > 0.01 and np.isfinite(fast.depth[0]).mean() > 0.1
     assert_same_layers(fast, layers_from_all_hits(house, camera, HouseTracer(house, backend="reference")))
+
+
+# ------------------------------------------------------------- compiled rules vs numpy rules
+
+COMPILED = pytest.mark.skipif(not layers_module.COMPILED_RULES, reason="sceneforge's Embree extension is not built")
+
+
+def random_object_hits(rng, n_rays: int, n_instances: int):
+    """CSR object hits built to test the rules' edge cases: few instances (repeats, D3
+    candidates that are not visible), exact distance ties, steps of exactly and just over
+    ``tol.same_instance_hit`` (D3's ``t >= D2 - tol`` test), rays without hits, rays with
+    and without a closing hit."""
+    counts = rng.integers(0, 9, n_rays) * (rng.random(n_rays) < 0.9)
+    k = int(counts.sum())
+    steps = rng.choice([0.0, tol.same_instance_hit, 1.5 * tol.same_instance_hit, 0.01, 0.3], size=k)
+    starts = np.repeat(rng.uniform(0.2, 3.0, n_rays), counts)
+    ray = np.repeat(np.arange(n_rays), counts)
+    offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    t = np.empty(k)
+    for r in range(n_rays):  # small: a loop keeps the construction obvious
+        lo, hi = offsets[r], offsets[r + 1]
+        t[lo:hi] = starts[lo:hi] + np.cumsum(steps[lo:hi]) if hi > lo else 0
+    inst = rng.integers(0, n_instances, k).astype(np.int32)
+    closes = rng.random(n_rays) < 0.8
+    last_t = np.zeros(n_rays)
+    np.maximum.at(last_t, ray, t)
+    closing_t = np.where(closes, last_t + rng.uniform(0, tol.envelope_slack, n_rays), np.nan)
+    closing_inst = np.where(closes, n_instances, -1).astype(np.int32)  # the envelope: the last instance
+    return offsets, t, inst, closing_t, closing_inst
+
+
+@COMPILED
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_rules_equal_the_numpy_rules_on_random_hits(seed):
+    rng = np.random.default_rng(seed)
+    H_, W_ = 30, 40
+    n_instances = (2, 3, 6, 40)[seed]
+    offsets, t, inst, closing_t, closing_inst = random_object_hits(rng, H_ * W_, n_instances)
+    category = rng.integers(1, 41, n_instances + 1).astype(np.uint8)
+    for scale in (rng.uniform(0.7, 1.0, H_ * W_), np.broadcast_to(np.float64(1.0), (H_ * W_,))):
+        got, want = (layers_module.apply_rules(offsets, t, inst, closing_t, closing_inst, scale, category,
+                                               (H_, W_), compiled=c) for c in (True, False))
+        assert np.isfinite(want.depth[2]).sum() > 50  # D3 is exercised
+        for name in ("depth", "category", "instance", "normal"):
+            a, b = getattr(got, name), getattr(want, name)
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            assert a.tobytes() == b.tobytes(), name
+
+
+@COMPILED
+@pytest.mark.parametrize("source", [pytest.param(s, id=s.id) for s in discover(BUNDLED_TOY)] + [
+    pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=pytest.mark.skipif(
+        not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent"))])
+def test_compiled_rules_equal_the_numpy_rules_on_house_views(source):
+    """Every pixel of the frontal and overhead layers of two views of each house."""
+    from sceneforge.overhead import OverheadConfig, overhead_camera, overhead_instances
+
+    house = load(source)
+    tracer = HouseTracer(house)
+    sampler = CameraSamplerConfig(max_escape_fraction=0.5)
+    cameras, _ = sample_cameras(house, 2, np.random.default_rng(3), sampler, tracer)
+    category, envelope = instance_labels(house)
+    seen = overhead_instances(house, OverheadConfig())
+    for camera in cameras:
+        top = overhead_camera(house, camera, frontal_layers(house, camera, tracer))
+        queries = [(camera, {}), (top, dict(objects=seen & ~envelope, envelope=seen & envelope,
+                                           envelope_near=OverheadConfig().floor_clearance))]
+        for cam, masks in queries:
+            origins, directions, scale = cam.rays()
+            hits = tracer.frontal_query(origins, directions, **masks)
+            got, want = (layers_module.apply_rules(hits.objects.offsets, hits.objects.t, hits.objects.instance,
+                                                   hits.closing.t, hits.closing.instance, scale, category,
+                                                   (cam.height, cam.width), compiled=c) for c in (True, False))
+            assert np.isfinite(want.depth[0]).any()
+            for name in ("depth", "category", "instance"):
+                assert getattr(got, name).tobytes() == getattr(want, name).tobytes(), name
+
+
+@COMPILED
+def test_compiled_rules_reject_instances_without_labels():
+    offsets = np.array([0, 1], np.int64)
+    with pytest.raises(ValueError, match="instance index"):
+        layers_module.apply_rules(offsets, np.ones(1), np.array([5], np.int32), np.full(1, np.nan),
+                                  np.full(1, -1, np.int32), np.ones(1), np.zeros(2, np.uint8), (1, 1), compiled=True)

@@ -15,8 +15,9 @@ or the object instances only. Everything else is done here, once, for every engi
 distances are recomputed in float64 from the triangle's plane (so the engines give
 bit-identical distances for the same hit), hits are sorted per ray, and hits of the same
 instance within ``tol.same_instance_hit`` of each other (a ray through an edge shared by
-two triangles) are merged into the first of them. An engine with a ``collect`` method
-(the ``embree`` one) does this work itself, operation for operation the same.
+two triangles) are merged into the first of them. An engine with ``collect`` and
+``first_hit`` methods (the ``embree`` one) does this work itself, operation for operation
+the same.
 
 :meth:`HouseTracer.frontal_query` returns only the hits the frontal layers can use (SPEC §4
 rule 1), split the way the rules read them: a first-hit query against the envelope (the
@@ -281,6 +282,9 @@ class CollectingBackend(Backend, Protocol):
     def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> "FrontalHits":
         """What :meth:`HouseTracer.frontal_query` makes of :meth:`intersect_first` and
         :meth:`collect` (closing hits, then object hits up to them + slack), bit for bit."""
+
+    def first_hit(self, rays: Rays, instances: np.ndarray | None = None) -> "FirstHit":
+        """What :meth:`HouseTracer.first_hit` makes of :meth:`intersect_first`, bit for bit."""
 
 
 #: how far (m) past ``t_max`` an engine's own (e.g. float32) distance must be before it
@@ -564,6 +568,9 @@ class HouseTracer:
         among ``instances`` ((n_instances,) bool, optional) only: with ``triangles.envelope``,
         the hits that make D5."""
         rays = Rays.check(origins, directions)
+        first_hit = getattr(self.backend, "first_hit", None)
+        if first_hit is not None:  # the engine computes the distances itself
+            return first_hit(rays, self._instance_mask(instances))
         return self._first_hit(rays, self.backend.intersect_first(rays, self._instance_mask(instances)))
 
     def _first_hit(self, rays: Rays, face: np.ndarray) -> FirstHit:

@@ -19,6 +19,11 @@
 //
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
+//
+// Three kernels that read no scene live here too, as the one compiled part of sceneforge:
+// the layer rules of SPEC 4 (sceneforge.layers.apply_rules) and the depth -> triangles
+// block rule and compaction (sceneforge.depth_mesh.grid_faces, compact). Each repeats its
+// numpy reference operation for operation; the tests hold them equal bit for bit.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -39,6 +44,7 @@
 #include <limits>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #if RTC_VERSION_MAJOR >= 4
@@ -66,10 +72,7 @@ struct HitRecord {
 struct Collector {
     SFContextBase base;
     const int64_t* face_base;  // first face (house index) of each geometry of the scene
-    const double* normal_x;
-    const double* normal_y;
-    const double* normal_z;
-    const double* offset;
+    const double* plane;      // (m, 4): each face's unit normal x, y, z and offset, together
     double ox, oy, oz;       // the ray, float64, unshifted
     double dx, dy, dz;
     double cutoff;           // hits farther than this are dropped (inf: none)
@@ -101,9 +104,9 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
             c->out->push_back({0.0, 0.0, face});
             continue;
         }
-        const double numerator = c->offset[face] - (c->normal_x[face] * c->ox + c->normal_y[face] * c->oy +
-                                                    c->normal_z[face] * c->oz);
-        const double cos = c->normal_x[face] * c->dx + c->normal_y[face] * c->dy + c->normal_z[face] * c->dz;
+        const double* q = c->plane + 4 * face;
+        const double numerator = q[3] - (q[0] * c->ox + q[1] * c->oy + q[2] * c->oz);
+        const double cos = q[0] * c->dx + q[1] * c->dy + q[2] * c->dz;
         const double t = numerator / cos;
         if (!std::isfinite(t) || !(t <= c->cutoff)) continue;
         c->out->push_back({t, cos, face});
@@ -121,8 +124,9 @@ struct EngineObject {
     int threads;
     std::deque<Scene>* scenes;  // a deque: adding a scene keeps the others in place (queries run without the GIL)
     // float64 copies of the house the callbacks read (plane terms, triangles)
-    std::vector<double>* normal_xyz;  // (3, m)
-    std::vector<double>* offset;      // (m,)
+    // (m, 4) each face's normal x, y, z and plane offset side by side (a hit reads one
+    // cache line, not four)
+    std::vector<double>* planes;
     std::vector<int32_t>* instance;   // (m,) owning instance of each face
     std::vector<int64_t>* first_face; // (n_instances + 1,)
     std::vector<double>* vertices;    // (v, 3) float64, unshifted
@@ -269,11 +273,7 @@ void init_collector(Collector& c, const EngineObject* e) {
     rtcInitIntersectContext(&c.base);
     c.base.filter = collect_filter;
 #endif
-    const int64_t m = static_cast<int64_t>(e->offset->size());
-    c.normal_x = e->normal_xyz->data();
-    c.normal_y = c.normal_x + m;
-    c.normal_z = c.normal_y + m;
-    c.offset = e->offset->data();
+    c.plane = e->planes->data();
 }
 
 // ------------------------------------------------------------------ the engine type
@@ -283,8 +283,7 @@ void engine_dealloc(EngineObject* self) {
         for (auto& s : *self->scenes) rtcReleaseScene(s.scene);
         delete self->scenes;
     }
-    delete self->normal_xyz;
-    delete self->offset;
+    delete self->planes;
     delete self->instance;
     delete self->first_face;
     delete self->vertices;
@@ -299,6 +298,22 @@ bool copy_buffer(PyObject* obj, std::vector<T>*& out, Py_ssize_t count, const ch
     if (!get_buffer(obj, b, sizeof(T), count, name)) return false;
     const T* p = static_cast<const T*>(b.view.buf);
     out = new std::vector<T>(p, p + b.view.len / sizeof(T));
+    return true;
+}
+
+// The (m, 4) plane table from normal_xyz (3, m) and offset (m,).
+bool get_planes(PyObject* normal_xyz, PyObject* offset, Py_ssize_t m, std::vector<double>*& out) {
+    Buffer bn, bo;
+    if (!get_buffer(normal_xyz, bn, sizeof(double), 3 * m, "normal_xyz") ||
+        !get_buffer(offset, bo, sizeof(double), m, "offset"))
+        return false;
+    const double* n = static_cast<const double*>(bn.view.buf);
+    const double* off = static_cast<const double*>(bo.view.buf);
+    out = new std::vector<double>(4 * m);
+    for (Py_ssize_t f = 0; f < m; ++f) {
+        double* q = out->data() + 4 * f;
+        q[0] = n[f], q[1] = n[m + f], q[2] = n[2 * m + f], q[3] = off[f];
+    }
     return true;
 }
 
@@ -321,8 +336,7 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
     const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
     if (!copy_buffer(instance, self->instance, m, "instance") ||
         !copy_buffer(first_face, self->first_face, -1, "first_face") ||
-        !copy_buffer(normal_xyz, self->normal_xyz, 3 * m, "normal_xyz") ||
-        !copy_buffer(offset, self->offset, m, "offset"))
+        !get_planes(normal_xyz, offset, m, self->planes))
         return -1;
     Buffer bs;
     if (!get_buffer(shift, bs, sizeof(double), 3, "shift")) return -1;
@@ -439,9 +453,9 @@ void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes,
                  double near, const Collector& planes, int64_t& face, double& t, double& cos) {
     face = nearest_face(e, scenes, o, d);
     auto plane = [&](int64_t f) {
-        const double numerator = planes.offset[f] - (planes.normal_x[f] * o[0] + planes.normal_y[f] * o[1] +
-                                                     planes.normal_z[f] * o[2]);
-        cos = planes.normal_x[f] * d[0] + planes.normal_y[f] * d[1] + planes.normal_z[f] * d[2];
+        const double* q = planes.plane + 4 * f;
+        const double numerator = q[3] - (q[0] * o[0] + q[1] * o[1] + q[2] * o[2]);
+        cos = q[0] * d[0] + q[1] * d[1] + q[2] * d[2];
         t = numerator / cos;
     };
     if (face >= 0) plane(face);
@@ -451,6 +465,43 @@ void closing_hit(const EngineObject* e, const std::vector<const Scene*>& scenes,
         if (face >= 0) plane(face);
     }
     if (face < 0) t = std::numeric_limits<double>::quiet_NaN(), cos = 0.0;
+}
+
+// closing(scene_ids, n, origins, directions, near) -> (face i8, t f8, instance i4,
+// triangle i8, front_facing bool) bytearrays: each ray's closing_hit over the scenes, what
+// HouseTracer._first_hit (near 0) and _closing make of the engine's nearest faces.
+PyObject* engine_closing(EngineObject* self, PyObject* args) {
+    PyObject *ids, *origins, *directions;
+    Py_ssize_t n;
+    double near;
+    if (!PyArg_ParseTuple(args, "OnOOd", &ids, &n, &origins, &directions, &near)) return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bo, bd;
+    RayRows rays;
+    if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
+    std::vector<int64_t> face(n), triangle(n);
+    std::vector<double> t(n), cos(n);
+    std::vector<int32_t> instance(n);
+    std::vector<char> front(n);
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks((n + kBlock - 1) / kBlock, self->threads, [&](int64_t b) {
+        Collector planes;
+        init_collector(planes, self);
+        const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
+        for (int64_t r = b * kBlock; r < hi; ++r) {
+            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos[r]);
+            const int64_t f = face[r];
+            instance[r] = f >= 0 ? face_instance[f] : -1;
+            triangle[r] = f >= 0 ? f - first_face[instance[r]] : -1;
+            front[r] = cos[r] < 0;
+        }
+    });
+    Py_END_ALLOW_THREADS
+    return Py_BuildValue("(NNNNN)", new_bytearray(face.data(), n * sizeof(int64_t)),
+                         new_bytearray(t.data(), n * sizeof(double)), new_bytearray(instance.data(), n * sizeof(int32_t)),
+                         new_bytearray(triangle.data(), n * sizeof(int64_t)), new_bytearray(front.data(), n));
 }
 
 struct BlockHits {
@@ -578,9 +629,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         BlockHits& blk = blocks[b];
         std::vector<std::pair<double, int64_t>> keyed;  // (key, position in the ray's hits)
         std::vector<HitRecord> sorted;
-        std::vector<HitRecord> kept;
-        kept.reserve(blk.hits.size());
-        size_t h = 0;
+        size_t h = 0, written = 0;  // kept hits go back into blk.hits, never past the ray being read
         for (size_t j = 0; j < blk.counts.size(); ++j) {
             const int64_t count = blk.counts[j];
             const double r = static_cast<double>(b * kBlock + static_cast<int64_t>(j));
@@ -589,10 +638,22 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             if (count == 0) continue;
             keyed.resize(count);
             for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
-            std::sort(keyed.begin(), keyed.end(), [&](const auto& x, const auto& y) {
+            // hits equal in (key, face) are the same record, so every sort by (key, face)
+            // gives the same result; insertion sort for the few hits of most rays
+            auto before = [&](const std::pair<double, int64_t>& x, const std::pair<double, int64_t>& y) {
                 if (x.first != y.first) return x.first < y.first;
                 return hits[x.second].face < hits[y.second].face;
-            });
+            };
+            if (count <= 24) {
+                for (int64_t k = 1; k < count; ++k) {
+                    const auto item = keyed[k];
+                    int64_t i = k;
+                    for (; i > 0 && before(item, keyed[i - 1]); --i) keyed[i] = keyed[i - 1];
+                    keyed[i] = item;
+                }
+            } else {
+                std::sort(keyed.begin(), keyed.end(), before);
+            }
             sorted.resize(count);
             for (int64_t k = 0; k < count; ++k) sorted[k] = hits[keyed[k].second];
             int64_t n_kept = 0;
@@ -606,11 +667,11 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
                         repeat = true;
                         break;
                     }
-                if (!repeat) kept.push_back(sorted[k]), ++n_kept;
+                if (!repeat) blk.hits[written++] = sorted[k], ++n_kept;
             }
             blk.counts[j] = n_kept;
         }
-        blk.hits.swap(kept);
+        blk.hits.resize(written);
     });
     Py_END_ALLOW_THREADS
 
@@ -776,11 +837,265 @@ PyObject* engine_closest(EngineObject* self, PyObject* args) {
     return new_bytearray(out.data(), k * sizeof(double));
 }
 
+// ------------------------------------------------------------------ layer rules
+
+// layer_rules(offsets (n+1,) i8, t (k,) f8, instance (k,) i4, closing_t (n,) f8,
+//             closing_instance (n,) i4, depth_scale (n,) or (1,) f8, category (c,) u1,
+//             same_instance f8, depth (5,n) f4 out, category (3,n) u1 out, instance (2,n) i4 out)
+//
+// SPEC 4 rules 2-3 on each ray's object hits (sorted, none beyond the closing hit + slack),
+// what sceneforge.layers._apply_rules does with whole-array operations, here in one pass
+// over the hits to find the visible instances (each ray's first object hit) and one more
+// for the layers. Every value is computed as there: depths are the float64 product
+// t * depth_scale rounded to float32, D3's test is t >= d2 - same_instance in float64. The
+// output arrays come filled with their "none" values (NaN, 0, -1).
+PyObject* layer_rules(PyObject*, PyObject* args) {
+    PyObject *offsets_o, *t_o, *inst_o, *ct_o, *ci_o, *scale_o, *cat_o, *depth_o, *ocat_o, *oinst_o;
+    double same_instance;
+    if (!PyArg_ParseTuple(args, "OOOOOOOdOOO", &offsets_o, &t_o, &inst_o, &ct_o, &ci_o, &scale_o, &cat_o,
+                          &same_instance, &depth_o, &ocat_o, &oinst_o))
+        return nullptr;
+    Buffer bo, bt, bi, bct, bci, bs, bc, bd, bocat, boinst;
+    if (!get_buffer(offsets_o, bo, sizeof(int64_t), -1, "offsets")) return nullptr;
+    const Py_ssize_t n = bo.view.len / static_cast<Py_ssize_t>(sizeof(int64_t)) - 1;
+    if (n < 0) {
+        PyErr_SetString(PyExc_ValueError, "offsets must have n_rays + 1 items");
+        return nullptr;
+    }
+    const int64_t* offsets = static_cast<const int64_t*>(bo.view.buf);
+    const Py_ssize_t k = offsets[n];
+    if (!get_buffer(t_o, bt, sizeof(double), k, "t") || !get_buffer(inst_o, bi, sizeof(int32_t), k, "instance") ||
+        !get_buffer(ct_o, bct, sizeof(double), n, "closing_t") ||
+        !get_buffer(ci_o, bci, sizeof(int32_t), n, "closing_instance") ||
+        !get_buffer(scale_o, bs, sizeof(double), -1, "depth_scale") ||
+        !get_buffer(cat_o, bc, 1, -1, "category"))
+        return nullptr;
+    const Py_ssize_t n_scale = bs.view.len / static_cast<Py_ssize_t>(sizeof(double));
+    if (n_scale != 1 && n_scale != n) {
+        PyErr_Format(PyExc_ValueError, "depth_scale: %zd values for %zd rays", n_scale, n);
+        return nullptr;
+    }
+    for (auto [obj, b, items, name] : {std::tuple{depth_o, &bd, 5 * n * 4, "depth"},
+                                       std::tuple{ocat_o, &bocat, 3 * n, "category out"},
+                                       std::tuple{oinst_o, &boinst, 2 * n * 4, "instance out"}}) {
+        if (PyObject_GetBuffer(obj, &b->view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) != 0) return nullptr;
+        b->held = true;
+        if (b->view.len != items) {
+            PyErr_Format(PyExc_ValueError, "%s: expected %zd bytes, got %zd", name, items, b->view.len);
+            return nullptr;
+        }
+    }
+    const double* t = static_cast<const double*>(bt.view.buf);
+    const int32_t* inst = static_cast<const int32_t*>(bi.view.buf);
+    const double* closing_t = static_cast<const double*>(bct.view.buf);
+    const int32_t* closing_inst = static_cast<const int32_t*>(bci.view.buf);
+    const double* scale = static_cast<const double*>(bs.view.buf);
+    const uint8_t* category = static_cast<const uint8_t*>(bc.view.buf);
+    const int64_t n_inst = bc.view.len;
+    float* depth = static_cast<float*>(bd.view.buf);
+    uint8_t* out_cat = static_cast<uint8_t*>(bocat.view.buf);
+    int32_t* out_inst = static_cast<int32_t*>(boinst.view.buf);
+    bool bad = false;
+    for (Py_ssize_t i = 0; i < k && !bad; ++i) bad = inst[i] < 0 || inst[i] >= n_inst;
+    for (Py_ssize_t r = 0; r < n && !bad; ++r) bad = closing_inst[r] < -1 || closing_inst[r] >= n_inst;
+    for (Py_ssize_t r = 0; r < n && !bad; ++r) bad = offsets[r] > offsets[r + 1] || offsets[r] < 0;
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "layer_rules: an instance index outside the labelled instances, or bad offsets");
+        return nullptr;
+    }
+    Py_BEGIN_ALLOW_THREADS
+    std::vector<char> visible(n_inst, 0);
+    for (Py_ssize_t r = 0; r < n; ++r)
+        if (offsets[r + 1] > offsets[r]) visible[inst[offsets[r]]] = 1;
+    float* D[5];
+    for (int l = 0; l < 5; ++l) D[l] = depth + l * n;
+    for (Py_ssize_t r = 0; r < n; ++r) {
+        const double s = scale[n_scale == 1 ? 0 : r];
+        D[4][r] = static_cast<float>(closing_t[r] * s);
+        out_cat[2 * n + r] = closing_inst[r] >= 0 ? category[closing_inst[r]] : 0;
+        const int64_t lo = offsets[r], hi = offsets[r + 1];
+        if (lo == hi) continue;
+        // D1: the first object hit; D2: the last hit of its instance
+        const int32_t i1 = inst[lo];
+        int64_t last = lo;
+        for (int64_t h = lo + 1; h < hi; ++h)
+            if (inst[h] == i1) last = h;
+        D[0][r] = static_cast<float>(t[lo] * s);
+        D[1][r] = static_cast<float>(t[last] * s);
+        out_cat[r] = category[i1];
+        out_inst[r] = i1;
+        // D3: the first hit of another visible instance at or after D2; D4: its instance's last hit
+        const double from = t[last] - same_instance;
+        int64_t third = -1;
+        for (int64_t h = lo + 1; h < hi; ++h)
+            if (inst[h] != i1 && visible[inst[h]] && t[h] >= from) {
+                third = h;
+                break;
+            }
+        if (third < 0) continue;
+        const int32_t i3 = inst[third];
+        last = third;
+        for (int64_t h = third + 1; h < hi; ++h)
+            if (inst[h] == i3) last = h;
+        D[2][r] = static_cast<float>(t[third] * s);
+        D[3][r] = static_cast<float>(t[last] * s);
+        out_cat[n + r] = category[i3];
+        out_inst[n + r] = i3;
+    }
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+// ------------------------------------------------------------------ depth -> triangles
+
+// The edge rule of one pixel pair: |d_i - d_j| exceeds a x the footprint of the nearer
+// pixel (sceneforge.depth_mesh._jumps, the same float64 operations).
+inline bool jump(double di, double dj, double fi, double fj, double a) {
+    double near = di <= dj ? fi : fj;
+    near *= a;
+    return std::fabs(di - dj) > near;
+}
+
+// grid_faces(depth (h,w) f8, footprint (h,w) f8, a, diagonal_a) -> bytearray (m,3) i8:
+// sceneforge.depth_mesh.grid_faces in one pass per block shape, the same triangles in the
+// same order (every triangle of the first shape, blocks in row-major order, then the
+// second...). diagonal_a is a * sqrt(2) as Python computes it.
+PyObject* grid_faces(PyObject*, PyObject* args) {
+    PyObject *depth_o, *foot_o;
+    Py_ssize_t h, w;
+    double a, diagonal_a;
+    if (!PyArg_ParseTuple(args, "OOnndd", &depth_o, &foot_o, &h, &w, &a, &diagonal_a)) return nullptr;
+    Buffer bd, bf;
+    if (h < 0 || w < 0 || !get_buffer(depth_o, bd, sizeof(double), h * w, "depth") ||
+        !get_buffer(foot_o, bf, sizeof(double), h * w, "footprint"))
+        return nullptr;
+    const double* D = static_cast<const double*>(bd.view.buf);
+    const double* P = static_cast<const double*>(bf.view.buf);
+    // pass 1 decides every block (a bit per triangle shape it keeps), pass 2 writes the
+    // faces straight into the result, shape by shape
+    std::vector<uint8_t> shape_of(h >= 2 && w >= 2 ? (h - 1) * (w - 1) : 0);
+    size_t counts[4] = {0, 0, 0, 0};
+    static const int tris[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
+    Py_BEGIN_ALLOW_THREADS
+    if (h >= 2 && w >= 2) {
+        // the block corners 0 = (r, c), 1 = (r, c+1), 2 = (r+1, c), 3 = (r+1, c+1); the four
+        // triangles (0 2 1), (0 3 1), (0 2 3), (1 2 3), as in depth_mesh._TRIANGLES
+        for (Py_ssize_t r = 0; r + 1 < h; ++r)
+            for (Py_ssize_t c = 0; c + 1 < w; ++c) {
+                const int64_t p[4] = {r * w + c, r * w + c + 1, (r + 1) * w + c, (r + 1) * w + c + 1};
+                double d[4], f[4];
+                bool ok[4];
+                int n_ok = 0;
+                for (int k = 0; k < 4; ++k) {
+                    d[k] = D[p[k]], f[k] = P[p[k]];
+                    ok[k] = std::isfinite(d[k]);
+                    n_ok += ok[k];
+                }
+                uint8_t emit = 0;
+                if (n_ok == 4) {
+                    const bool along_03 = std::fabs(d[0] - d[3]) < std::fabs(d[1] - d[2]);
+                    emit = along_03 ? (2 | 4) : (1 | 8);
+                } else if (n_ok == 3) {
+                    emit = !ok[3] ? 1 : !ok[2] ? 2 : !ok[1] ? 4 : 8;
+                }
+                if (!emit) continue;
+                for (int s = 0; s < 4; ++s) {
+                    if (!(emit & (1 << s))) continue;
+                    for (int k = 0; k < 3; ++k) {
+                        int i = tris[s][k], j = tris[s][(k + 1) % 3];
+                        if (i > j) std::swap(i, j);
+                        const bool diagonal = (i == 0 && j == 3) || (i == 1 && j == 2);
+                        if (jump(d[i], d[j], f[i], f[j], diagonal ? diagonal_a : a)) {
+                            emit &= static_cast<uint8_t>(~(1 << s));
+                            break;
+                        }
+                    }
+                }
+                shape_of[r * (w - 1) + c] = emit;
+                for (int s = 0; s < 4; ++s) counts[s] += (emit >> s) & 1;
+            }
+    }
+    Py_END_ALLOW_THREADS
+    const size_t m = counts[0] + counts[1] + counts[2] + counts[3];
+    PyObject* out = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(3 * m * sizeof(int64_t)));
+    if (!out) return nullptr;
+    int64_t* faces = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out));
+    Py_BEGIN_ALLOW_THREADS
+    const int64_t offset[4] = {0, 1, w, w + 1};
+    int64_t* cursor[4];  // where the next triangle of each shape goes
+    cursor[0] = faces;
+    for (int s = 1; s < 4; ++s) cursor[s] = cursor[s - 1] + 3 * counts[s - 1];
+    for (Py_ssize_t r = 0; r + 1 < h && m; ++r) {
+        const uint8_t* row = shape_of.data() + r * (w - 1);
+        for (Py_ssize_t c = 0; c + 1 < w; ++c) {
+            const uint8_t emit = row[c];
+            if (!emit) continue;
+            const int64_t top_left = r * w + c;
+            for (int s = 0; s < 4; ++s) {
+                if (!(emit & (1 << s))) continue;
+                for (int v = 0; v < 3; ++v) *cursor[s]++ = top_left + offset[tris[s][v]];
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    return out;
+}
+
+// compact_faces(faces (m,3) i8, n_pixels) -> (used (k,) i8, faces (m,3) i8) bytearrays: the
+// pixels the faces use, ascending, and the faces renumbered to index them
+// (sceneforge.depth_mesh.compact without the points).
+PyObject* compact_faces(PyObject*, PyObject* args) {
+    PyObject* faces_o;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "On", &faces_o, &n)) return nullptr;
+    Buffer bf;
+    if (n < 0 || !get_buffer(faces_o, bf, 3 * sizeof(int64_t), -1, "faces")) return nullptr;
+    const int64_t* F = static_cast<const int64_t*>(bf.view.buf);
+    const Py_ssize_t m3 = bf.view.len / static_cast<Py_ssize_t>(sizeof(int64_t));
+    for (Py_ssize_t i = 0; i < m3; ++i)
+        if (F[i] < 0 || F[i] >= n) {
+            PyErr_SetString(PyExc_IndexError, "compact_faces: a face corner outside the pixels");
+            return nullptr;
+        }
+    std::vector<int64_t> renumber(n, 0);
+    for (Py_ssize_t i = 0; i < m3; ++i) renumber[F[i]] = 1;
+    int64_t k = 0;
+    for (Py_ssize_t p = 0; p < n; ++p) renumber[p] = renumber[p] ? k++ : -1;
+    PyObject* used_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(k * sizeof(int64_t)));
+    PyObject* faces_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(m3 * sizeof(int64_t)));
+    if (!used_b || !faces_b) {
+        Py_XDECREF(used_b);
+        Py_XDECREF(faces_b);
+        return nullptr;
+    }
+    int64_t* used = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(used_b));
+    int64_t* out = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(faces_b));
+    for (Py_ssize_t p = 0; p < n; ++p)
+        if (renumber[p] >= 0) used[renumber[p]] = p;
+    for (Py_ssize_t i = 0; i < m3; ++i) out[i] = renumber[F[i]];
+    return Py_BuildValue("(NN)", used_b, faces_b);
+}
+
+PyMethodDef module_methods[] = {
+    {"layer_rules", layer_rules, METH_VARARGS,
+     "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
+     "depth_out, category_out, instance_out): SPEC 4 rules 2-3, as sceneforge.layers._apply_rules"},
+    {"grid_faces", grid_faces, METH_VARARGS,
+     "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
+     "sceneforge.depth_mesh.grid_faces"},
+    {"compact_faces", compact_faces, METH_VARARGS,
+     "compact_faces(faces, n_pixels) -> (used pixels, renumbered faces) int64 (bytes), as "
+     "sceneforge.depth_mesh.compact"},
+    {nullptr, nullptr, 0, nullptr},
+};
+
 PyMethodDef engine_methods[] = {
     {"add_scene", reinterpret_cast<PyCFunction>(engine_add_scene), METH_VARARGS,
      "add_scene(members, first_vertex) -> scene id"},
     {"first", reinterpret_cast<PyCFunction>(engine_first), METH_VARARGS,
      "first(scene_ids, n, origins, directions) -> nearest face per ray (int64 bytes)"},
+    {"closing", reinterpret_cast<PyCFunction>(engine_closing), METH_VARARGS,
+     "closing(scene_ids, n, origins, directions, near) -> closing hit arrays (bytes)"},
     {"collect", reinterpret_cast<PyCFunction>(engine_collect), METH_VARARGS,
      "collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw) -> hit arrays (bytes)"},
     {"closest", reinterpret_cast<PyCFunction>(engine_closest), METH_VARARGS,
@@ -792,7 +1107,7 @@ PyTypeObject EngineType = {PyVarObject_HEAD_INIT(nullptr, 0)};
 
 PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_embree",
                           "Every hit of a ray in one Embree traversal; see sceneforge.raytrace.embree_backend.",
-                          -1, nullptr};
+                          -1, module_methods};
 
 }  // namespace
 

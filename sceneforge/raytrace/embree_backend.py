@@ -140,6 +140,25 @@ class EmbreeBackend:
         )
         return FrontalHits(hits, closing)
 
+    def first_hit(self, rays: Rays, instances: np.ndarray | None = None) -> FirstHit:
+        """:meth:`HouseTracer.first_hit <sceneforge.raytrace.HouseTracer.first_hit>` in one
+        call: the nearest faces and their float64 plane distances, bit for bit what the
+        tracer makes of :meth:`intersect_first`."""
+        n = len(rays)
+        if not n:
+            return FirstHit(np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros(0, bool),
+                            np.zeros(0, np.int64), self._triangles.normal)
+        o, d = self._rows(rays)
+        face, t, instance, triangle, front = self._engine.closing(self._selected(instances), n, o, d, 0.0)
+        return FirstHit(
+            t=np.frombuffer(t, dtype=np.float64),
+            instance=np.frombuffer(instance, dtype=np.int32),
+            triangle=np.frombuffer(triangle, dtype=np.int64),
+            front_facing=np.frombuffer(front, dtype=bool),
+            face=np.frombuffer(face, dtype=np.int64),
+            face_normals=self._triangles.normal,
+        )
+
     def intersect_all(
         self, rays: Rays, instances: np.ndarray | None = None, t_max: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
