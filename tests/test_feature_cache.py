@@ -85,11 +85,14 @@ def test_cached_features_give_the_same_overhead_outputs_as_recomputing_them(dtyp
             assert (from_cache[name] - recomputed[name]).abs().max() <= 1e-3 * scale, name
 
 
-def test_a_cache_that_does_not_fit_is_not_used(store, frontal_runs, tmp_path):
+def test_a_cache_that_does_not_fit_or_cannot_be_written_is_not_used(store, frontal_runs, tmp_path):
     config = overhead_config(store, frontal_runs, feature_cache_gib=1e-6)
     frontal, eft, dataset, _ = pieces(config)
     assert FeatureCache(tmp_path, config, frontal, eft).view_bytes() * 6 > 1e-6 * 2 ** 30
     assert cached_datasets(config, tmp_path, frontal, eft, CPU, STAGE.targets, dataset, None) == [dataset, None]
+    config = overhead_config(store, frontal_runs)
+    (tmp_path / "run").write_text("a file where the run folder should be: nothing can be written below")
+    assert cached_datasets(config, tmp_path / "run", frontal, eft, CPU, STAGE.targets, dataset) == [dataset]
     off = overhead_config(store, frontal_runs, feature_cache="off")
     assert cached_datasets(off, tmp_path, frontal, eft, CPU, STAGE.targets, dataset) == [dataset]
     assert not list(tmp_path.glob(f"{CACHE_DIR}/*/*.npy"))

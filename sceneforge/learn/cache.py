@@ -27,7 +27,11 @@ Layout, under the run folder::
 (relative error ≤ 2⁻¹¹ ≈ 4.9e-4; a view whose values overflow float16 is stored in float32);
 ``float32`` stores the features exactly. ``feature_cache_gib`` bounds the disk used: a split
 (training, validation) whose views do not fit in what is left is not cached and is
-recomputed every step, as with ``feature_cache="off"``.
+recomputed every step, as with ``feature_cache="off"``; so is one whose files cannot be
+written (a full disk: a warning says so).
+
+Under DistributedDataParallel every process fills the cache itself (the files are written
+whole, so they may share the folder, at the cost of computing every view once per process).
 """
 
 from __future__ import annotations
@@ -144,7 +148,8 @@ class FeatureCache:
 
     def fill(self, dataset: StoreDataset, device: torch.device, workers: int = 0) -> int:
         """Compute and write the features of the views of ``dataset`` not cached yet (in
-        batches of ``config.batch_size``); the number of views computed."""
+        batches of ``config.batch_size``); the number of views computed. Raises OSError
+        when a file cannot be written (e.g. the disk is full)."""
         from .stages import overhead_input
 
         files = self.files(dataset)
@@ -170,8 +175,12 @@ class FeatureCache:
         if not torch.isfinite(stored).all():  # beyond float16's range: keep this view exact
             stored = features.float()
         tmp = f"{path}.{os.getpid()}.tmp.npy"
-        np.save(tmp, stored.cpu().contiguous().numpy())
-        os.replace(tmp, path)
+        try:
+            np.save(tmp, stored.cpu().contiguous().numpy())
+            os.replace(tmp, path)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
 
 
 def cached_datasets(config: TrainConfig, run: str | Path, frontal: dict[str, nn.Module],
@@ -200,6 +209,12 @@ def cached_datasets(config: TrainConfig, run: str | Path, frontal: dict[str, nn.
             out.append(dataset)
             continue
         left -= need
-        cache.fill(dataset, device, workers)
+        try:
+            cache.fill(dataset, device, workers)
+        except OSError as e:
+            log.warning("feature cache: cannot write %s (%s); recomputing the features every step",
+                        cache.folder, e.strerror or e)
+            out.append(dataset)
+            continue
         out.append(CachedDataset(StoreDataset(dataset.index, targets), cache.files(dataset)))
     return out
