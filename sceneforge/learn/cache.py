@@ -146,10 +146,11 @@ class FeatureCache:
                     log.info("removing the stale feature cache %s", other)
                     shutil.rmtree(other, ignore_errors=True)
 
-    def fill(self, dataset: StoreDataset, device: torch.device, workers: int = 0) -> int:
+    def fill(self, dataset: StoreDataset, device: torch.device) -> int:
         """Compute and write the features of the views of ``dataset`` not cached yet (in
-        batches of ``config.batch_size``); the number of views computed. Raises OSError
-        when a file cannot be written (e.g. the disk is full)."""
+        batches of ``config.batch_size``; read in this process, which the frozen nets keep
+        busy far longer); the number of views computed. Raises OSError when a file cannot
+        be written (e.g. the disk is full)."""
         from .stages import overhead_input
 
         files = self.files(dataset)
@@ -159,7 +160,7 @@ class FeatureCache:
         self.folder.mkdir(parents=True, exist_ok=True)
         log.info("feature cache: computing %d views into %s", len(missing), self.folder)
         loader = torch.utils.data.DataLoader(torch.utils.data.Subset(dataset, missing),
-                                             batch_size=self.config.batch_size, num_workers=workers)
+                                             batch_size=self.config.batch_size)
         truth = self.config.eft_layers == "truth"
         done = 0
         for batch in loader:
@@ -185,7 +186,7 @@ class FeatureCache:
 
 def cached_datasets(config: TrainConfig, run: str | Path, frontal: dict[str, nn.Module],
                     eft: EpipolarFeatureTransformer, device: torch.device, targets: tuple[str, ...],
-                    *datasets: StoreDataset | None, workers: int = 0) -> list:
+                    *datasets: StoreDataset | None) -> list:
     """The overhead stage's datasets with their inputs cached (``config.feature_cache``).
 
     datasets : the training and validation sets (None: none), filled in this order while
@@ -210,7 +211,7 @@ def cached_datasets(config: TrainConfig, run: str | Path, frontal: dict[str, nn.
             continue
         left -= need
         try:
-            cache.fill(dataset, device, workers)
+            cache.fill(dataset, device)
         except OSError as e:
             log.warning("feature cache: cannot write %s (%s); recomputing the features every step",
                         cache.folder, e.strerror or e)

@@ -274,8 +274,7 @@ def train(
     start = checkpoint.restore(trainer) if resume else Position()
     train_set, val_set = _datasets(stage, config, subsets)
     if stage.uses_eft:
-        train_set, val_set = cached_datasets(config, run, frontal, eft, dev, stage.targets, train_set, val_set,
-                                             workers=workers)
+        train_set, val_set = cached_datasets(config, run, frontal, eft, dev, stage.targets, train_set, val_set)
     total = _total_steps(config, len(train_set))
     log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
                      {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
