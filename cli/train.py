@@ -30,6 +30,8 @@ TRAIN_OPTIONS = (
     ConfigOption("--eft-layers", "eft_layers"),
     ConfigOption("--gating", "eft.gating"),
     ConfigOption("--floor-as-zero", "floor_as_zero"),
+    ConfigOption("--feature-cache", "feature_cache"),
+    ConfigOption("--feature-cache-gib", "feature_cache_gib", type=click.FloatRange(min=0)),
     ConfigOption("--seg-empty", "loss.seg_empty"),
     ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),

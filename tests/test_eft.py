@@ -172,6 +172,37 @@ def test_volume_matches_loop_reference_forward_and_backward(seed):
     np.testing.assert_allclose(F.grad.numpy(), ref_grad, atol=1e-12)
 
 
+class _Counting:
+    """Wraps a function and counts its calls."""
+
+    def __init__(self, fn):
+        self.fn, self.calls = fn, 0
+
+    def __call__(self, *args, **kw):
+        self.calls += 1
+        return self.fn(*args, **kw)
+
+
+def test_volume_builds_nothing_for_backward_under_no_grad(monkeypatch):
+    import sceneforge.learn.eft as eft
+
+    inp = random_inputs(4)
+    near, far = torch.tensor(inp["near"]), torch.tensor(inp["far"])
+    csr, sort = _Counting(eft._csr), _Counting(torch.sort)
+    monkeypatch.setattr(eft, "_csr", csr)
+    monkeypatch.setattr(torch, "sort", sort)
+    F = torch.tensor(inp["feats"], requires_grad=True)
+    with_grad = transfer_volume(F, inp["geom"], near, far)
+    assert with_grad.requires_grad and csr.calls == 1  # the backward's matrix, so the counter counts
+    with torch.no_grad():
+        no_grad = transfer_volume(F, inp["geom"], near, far)
+    frozen = transfer_volume(F.detach(), inp["geom"], near, far)  # grad on, nothing to differentiate
+    assert (csr.calls, sort.calls) == (1, 0) and not no_grad.requires_grad and not frozen.requires_grad
+    # one forward for both: the same pairs summed in the same order
+    torch.testing.assert_close(no_grad, with_grad.detach(), atol=0, rtol=0)
+    torch.testing.assert_close(frozen, no_grad, atol=0, rtol=0)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_surface_matches_loop_reference_forward_and_backward(seed):
     inp = random_inputs(seed)

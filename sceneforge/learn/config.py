@@ -28,6 +28,8 @@ GATINGS: tuple[str, ...] = typing.get_args(Gating)
 SegEmpty = Literal["ignore", "background"]
 #: how the floor is removed from predicted overhead heights
 FloorRemoval = Literal["segmentation", "height"]
+#: what the overhead stage caches of its input (:mod:`sceneforge.learn.cache`)
+FeatureCache = Literal["float16", "float32", "off"]
 #: the views a prediction or an evaluation takes: the houses of one split, or every view
 SplitName = Literal["test", "val", "train", "all"]
 
@@ -130,6 +132,13 @@ class TrainConfig:
     #: rejected alternative, which lets the height net segment the floor; default: object
     #: pixels only, the floor being removed by the overhead segmentation at test time)
     floor_as_zero: bool = False
+    #: the overhead stage's input (the EFT of the frozen nets' features) per view, computed
+    #: once before the first step into RUN/feature_cache and read back every step after:
+    #: "float16" (half the disk, values rounded to 11 significant bits), "float32" (exact)
+    #: or "off" (recomputed every step)
+    feature_cache: FeatureCache = "float16"
+    #: disk bound of the feature cache, GiB: a split whose views do not fit is not cached
+    feature_cache_gib: float = 64.0
     #: write a train row to the metrics every this many steps
     log_every: int = 10
     #: save the checkpoint every this many steps (and at the end of every epoch)
@@ -155,6 +164,11 @@ class TrainConfig:
             raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
         if not self.lr > 0 or not self.width > 0:
             raise ValueError(f"lr and width must be > 0, got {self.lr} and {self.width}")
+        if self.feature_cache not in typing.get_args(FeatureCache):
+            raise ValueError(f"feature_cache must be one of {typing.get_args(FeatureCache)}, "
+                             f"got {self.feature_cache!r}")
+        if not self.feature_cache_gib >= 0:
+            raise ValueError(f"feature_cache_gib must be >= 0, got {self.feature_cache_gib}")
         if not 0 < self.bn_momentum <= 1:
             raise ValueError(f"bn_momentum must be in (0, 1], got {self.bn_momentum}")
         object.__setattr__(self, "stores", tuple(str(s) for s in self.stores))

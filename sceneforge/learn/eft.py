@@ -28,9 +28,11 @@ overhead image of a segment of its ray:
   pixel keeps the feature of the highest point (smallest overhead depth; ties: lowest
   frontal pixel index) — the paper's z-buffer.
 
-Both are vectorised over the batch and every ray (index and sort operations, no Python
-loop over pixels); rays are processed in chunks of at most ``max_samples`` samples to
-bound memory. The geometry is computed in float64 so CPU and GPU pick the same overhead
+Both are vectorised over the batch and every ray (index and scatter operations, no
+Python loop over pixels, no sort); rays are processed in chunks of at most ``max_samples``
+samples to bound memory. Volume gating builds the transposed matrix its backward needs
+only when autograd will call it (grad enabled and features that require grad): under
+``torch.no_grad`` (the frozen nets' features of the overhead stage) it builds none. The geometry is computed in float64 so CPU and GPU pick the same overhead
 pixels; the output is differentiable with respect to the features (not the depths).
 
 Also here: the **frustum mask** (the transform of a constant 1 along whole rays, computed
@@ -291,16 +293,29 @@ def _zbuffer(src: Tensor, dst: Tensor, z: Tensor, n_dst: int) -> tuple[Tensor, T
 
 
 class _SparseTransfer(torch.autograd.Function):
-    """``G = A F`` with a constant sparse ``A``; backward ``dF = Aᵀ dG``."""
+    """``G = A F`` with a constant sparse ``A`` (forward: :func:`_scatter`); backward ``dF = Aᵀ dG``."""
 
     @staticmethod
-    def forward(ctx, features, A, AT):
+    def forward(ctx, features, src, dst, weight, n_dst, AT):
         ctx.AT = AT
-        return A @ features
+        return _scatter(features, src, dst, weight, n_dst)
 
     @staticmethod
     def backward(ctx, grad):
-        return ctx.AT @ grad.contiguous(), None, None
+        return ctx.AT @ grad.contiguous(), None, None, None, None, None
+
+
+def _scatter(features: Tensor, src: Tensor, dst: Tensor, weight: Tensor, n_dst: int) -> Tensor:
+    """``G[dst] += weight · F[src]`` over every pair: ``A F`` without building ``A``.
+
+    features : (n_src, C); src, dst, weight : (P,), pairs sorted by (src, dst)
+    Returns (n_dst, C). An uncoalesced COO matrix multiplies without sorting its pairs on
+    the CPU (one pass in the pairs' order, the same sums whatever the thread count); on a
+    GPU torch coalesces it first.
+    """
+    A = torch.sparse_coo_tensor(torch.stack([dst, src]), weight, (n_dst, features.shape[0]),
+                                is_coalesced=False, check_invariants=False)
+    return torch.sparse.mm(A, features)
 
 
 def _csr(rows: Tensor, cols: Tensor, values: Tensor, shape: tuple[int, int]) -> Tensor:
@@ -330,7 +345,8 @@ def transfer_volume(features: Tensor, geom: EpipolarGeometry, near: Tensor, far:
 
     features  : (B, C, H, W) float  frontal feature map (differentiable)
     near, far : (B, H, W)           segment ends, planar depth (NaN = no segment)
-    Returns (B, C, R, R), same dtype and device as ``features``.
+    Returns (B, C, R, R), same dtype and device as ``features``. The backward's matrix is
+    built only where autograd needs it (module docstring).
     """
     B, C = features.shape[:2]
     R = geom.resolution
@@ -338,11 +354,12 @@ def transfer_volume(features: Tensor, geom: EpipolarGeometry, near: Tensor, far:
     n_src, n_dst = B * geom.frontal_hw[0] * geom.frontal_hw[1], B * R * R
     count = torch.bincount(dst, minlength=n_dst).to(features.dtype)
     weight = 1.0 / count[dst]
-    AT = _csr(src, dst, weight, (n_src, n_dst))
-    order = torch.sort(dst, stable=True).indices  # src stays sorted within each dst row
-    A = _csr(dst[order], src[order], weight[order], (n_dst, n_src))
-    flat = _SparseTransfer.apply(_flat(features).contiguous(), A, AT)
-    return _unflat(flat, B, R)
+    flat = _flat(features).contiguous()
+    if not (torch.is_grad_enabled() and features.requires_grad):
+        # nothing will call backward: no transposed matrix for it
+        return _unflat(_scatter(flat, src, dst, weight, n_dst), B, R)
+    AT = _csr(src, dst, weight, (n_src, n_dst))  # the pairs' (src, dst) order is CSR order of Aᵀ
+    return _unflat(_SparseTransfer.apply(flat, src, dst, weight, n_dst, AT), B, R)
 
 
 def transfer_surface(features: Tensor, geom: EpipolarGeometry, points: Tensor) -> Tensor:

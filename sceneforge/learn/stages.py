@@ -147,6 +147,9 @@ class OverheadStage(Stage):
     predicts = ("depth", "seg", "overhead")
     uses_eft = True
     val_metrics = ("height_l1_above_5cm", "overhead_seg_miou")
+    #: the fields its objective reads: with its input cached, batches need only these
+    #: (:mod:`.cache`)
+    targets = ("overhead_height", "overhead_seg")
 
     def build(self, config, frontal):
         cin = EpipolarFeatureTransformer.out_channels(frontal["depth"].feature_channels,
@@ -155,7 +158,10 @@ class OverheadStage(Stage):
                 "overhead_seg": OverheadNet(cin, SEG_CLASSES, _widths(config, OVERHEAD_NET))}
 
     def forward(self, config, nets, frontal, eft, batch):
-        x, _, _ = overhead_input(frontal, eft, batch, config.eft_layers == "truth")
+        if "overhead_input" in batch:  # read from the feature cache (:mod:`.cache`)
+            x = batch["overhead_input"].float()
+        else:
+            x, _, _ = overhead_input(frontal, eft, batch, config.eft_layers == "truth")
         return {"height": nets["height"](x), "overhead_seg": nets["overhead_seg"](x)}
 
     def objective(self, config, outputs, batch):

@@ -19,6 +19,7 @@ A run lives in one folder::
     RUN/loss_curve.png     train and validation loss against steps, drawn at the end
     RUN/tensorboard/       the same scalars, when TensorBoard is installed
     RUN/wandb/             the same, with ``wandb=True`` (Weights & Biases, if installed)
+    RUN/feature_cache/     the overhead stage's input per view (:mod:`.cache`)
 
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
 checkpoint with the same data order (a seeded permutation per epoch).
@@ -37,6 +38,7 @@ import torch
 from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
+from .cache import cached_datasets
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
 from .dataset import StoreDataset, ViewIndex, index_stores
 from .eft import EpipolarFeatureTransformer
@@ -271,6 +273,8 @@ def train(
     checkpoint = Checkpoint(run / CHECKPOINT)
     start = checkpoint.restore(trainer) if resume else Position()
     train_set, val_set = _datasets(stage, config, subsets)
+    if stage.uses_eft:
+        train_set, val_set = cached_datasets(config, run, frontal, eft, dev, stage.targets, train_set, val_set)
     total = _total_steps(config, len(train_set))
     log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
                      {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
