@@ -445,7 +445,7 @@ def main() -> None:
     print("| " + " | ".join("---" for _ in head) + " |")
     for what, gflop, values, higher, peaks in rows:
         fp32 = values["fp32"]
-        cells = [what, f"{gflop:.0f}" if gflop is not None else "–"]
+        cells = [what, f"{gflop:.3g}" if gflop is not None else "–"]
         cells += [f"{values[p.name]:.3g}" if higher else f"{values[p.name]:.0f}" for p in precisions]
         cells += [f"{(values[p.name] / fp32 if higher else fp32 / values[p.name]):.2f}×" for p in amp]
         if cuda:
@@ -455,7 +455,7 @@ def main() -> None:
           "convolutions and matrix products)")
     for what, gflop, values, _, _ in rows:
         if gflop is not None:
-            print(f"  {what.split(':')[0]}: fp32 reaches {gflop * values['fp32']:.0f} GFLOP/s")
+            print(f"  {what.split(':')[0]}: fp32 reaches {gflop * values['fp32']:.3g} GFLOP/s")
 
     if args.eft_baseline:
         ours, base = bench_eft_baseline(batch, args, device, R)
