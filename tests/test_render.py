@@ -365,7 +365,7 @@ def test_window_is_a_lambertian_panel_of_sky_light():
                            faces=[[0, 2, 1], [0, 3, 2]])  # facing the camera
     camera = look_at_camera([0, 1.0, -0.5], [0, -0.25, 1], width=64, height=48)
     (light,) = house_lights(house, config)
-    assert light.source == "window"
+    assert light.source == "window" and light.instance == window.id
     np.testing.assert_allclose(light.direction, [0, 0, -1], atol=1e-12)
     seen, points = floor_points(house, floor, camera)
     # the pixels whose ray meets the window plane inside the window, nothing in front of it
