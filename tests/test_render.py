@@ -439,6 +439,14 @@ def test_tone_curve():
     np.testing.assert_array_equal(out[0, 0], np.round(255 * linear_to_srgb(aces(KEY))))
     with pytest.raises(ValueError, match="unknown tone curve 'gamma'"):
         tonemap(radiance, seen, tone="gamma")
+    # the float32 evaluation is the float64 reference's, to a level of rounding
+    rng = np.random.default_rng(0)
+    radiance = rng.gamma(0.7, 1.0, (200, 300, 3)).astype(np.float32)
+    seen = np.ones((200, 300), bool)
+    for tone, curve in (("aces", aces), ("clip", lambda v: np.clip(v, 0, 1))):
+        fast = tonemap(radiance, seen, exposure=0.8, tone=tone).astype(int)
+        reference = np.round(255 * linear_to_srgb(curve(0.8 * radiance.astype(np.float64))))
+        assert np.abs(fast - reference).max() <= 1 and (fast == reference).mean() > 0.999
 
 
 def test_a_room_is_lit_by_its_own_lights_only():

@@ -607,7 +607,7 @@ class Renderer:
         scene = gl.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(float(config.ambient),) * 3)
         textures: dict[tuple, object] = {}
         rooms: dict[str | None, tuple[np.ndarray, list]] = {}
-        for batch in house_batches(house, emission):
+        for batch in _merge_plain(house_batches(house, emission)):
             material = batch.material
             texture = None
             if material.texture is not None:
@@ -644,6 +644,32 @@ class Renderer:
         # which NumPy 2 removed
         scene._bounds = house.bounds()
         self._scene, self._house = scene, house
+
+
+def _merge_plain(batches: list[Batch]) -> list[Batch]:
+    """The batches to draw: per room, every batch without a texture or emission merged into
+    one, its base colours moved into the vertex colours (the shader multiplies the two in
+    float32, as this does); the others as they are. Each draw costs pyrender a few dozen
+    Python calls per frame, and a room of one material per object has dozens of batches."""
+    from dataclasses import replace
+
+    out, plain = [], {}
+    for batch in batches:
+        if batch.material.texture is None and batch.emission == 0:
+            plain.setdefault(batch.room, []).append(batch)
+        else:
+            out.append(batch)
+    merged = []
+    for room, group in plain.items():
+        colours = []
+        for b in group:
+            base = np.asarray(b.material.base_color, dtype=np.float32)
+            rgba = b.colors if b.colors is not None else np.ones((len(b.positions), 4), np.float32)
+            colours.append(rgba * np.array([*base[:3], 1.0], np.float32))
+        white = replace(group[0].material, base_color=(1.0, 1.0, 1.0, 1.0))
+        merged.append(Batch(room, group[0].origin, np.concatenate([b.positions for b in group]),
+                            np.concatenate([b.normals for b in group]), np.concatenate(colours), None, white))
+    return merged + out
 
 
 #: OpenGL's wrap modes of :data:`sceneforge.houses.model.WRAPS`

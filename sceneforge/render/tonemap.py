@@ -11,10 +11,9 @@ candela, cd/m²) for every pixel, and :func:`tonemap` turns it into the stored i
    every light of the house by the same factor leaves the image unchanged. A number is
    a fixed exposure instead (radiance × it, the same for every view).
 2. **Tone curve**: ``RenderConfig.tone`` ``"aces"`` (default) is Narkowicz's fit of the
-   ACES filmic curve, applied per channel to ``e × radiance``: linear (×0.18/0.27 slope
-   change aside) through the mid-tones, a soft shoulder that reaches white only at about
-   40× mid-grey (``e × radiance`` ≈ 7.2), so surfaces near a lamp stay graded instead of
-   clipping. ``"clip"`` is no curve (``e × radiance`` clipped to [0, 1]): with
+   ACES filmic curve, applied per channel to ``e × radiance``: a gentle toe, mid-grey
+   0.18 → 0.27, and a soft shoulder that reaches white only at about 40× mid-grey
+   (``e × radiance`` ≈ 7.2), so surfaces near a lamp stay graded instead of clipping. ``"clip"`` is no curve (``e × radiance`` clipped to [0, 1]): with
    ``exposure=1`` a surface of radiance equal to its base colour shows exactly that colour
    (for checking materials and textures).
 3. **sRGB encoding** (IEC 61966-2-1) and rounding to bytes; pixels that see nothing get
@@ -59,7 +58,7 @@ def aces(x):
 def auto_exposure(radiance: np.ndarray, seen: np.ndarray) -> float:
     """The exposure that puts the median luminance of the ``seen`` pixels at :data:`KEY`;
     1 when nothing is seen or the median is black (then the mean is used if it is not)."""
-    luminance = radiance[seen] @ LUMINANCE
+    luminance = (radiance @ LUMINANCE.astype(radiance.dtype))[seen]
     if luminance.size == 0:
         return 1.0
     middle = float(np.median(luminance))
@@ -76,13 +75,28 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
     exposure   : None: automatic; else the fixed factor
     tone       : one of :data:`TONES`
     background : sRGB colour in [0, 1] of the pixels that see nothing
+
+    The curve and the encoding are evaluated in float32 (:func:`aces` and
+    :func:`linear_to_srgb` are the float64 references; the two agree to a level of 8-bit
+    rounding), which takes a fifth of the time.
     """
     if tone not in TONES:
         raise ValueError(f"unknown tone curve {tone!r}; expected one of {', '.join(TONES)}")
-    radiance = np.nan_to_num(np.asarray(radiance, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    e = auto_exposure(radiance, seen) if exposure is None else float(exposure)
-    exposed = e * radiance
-    display = aces(exposed) if tone == "aces" else np.clip(exposed, 0.0, 1.0)
-    out = np.round(255.0 * linear_to_srgb(display)).astype(np.uint8)
+    f = np.float32
+    x = np.nan_to_num(np.asarray(radiance, dtype=f), nan=0.0, posinf=0.0, neginf=0.0)
+    e = auto_exposure(x, seen) if exposure is None else float(exposure)
+    x *= f(e)
+    np.maximum(x, f(0.0), out=x)
+    if tone == "aces":
+        a, b, c, d, k = (f(v) for v in ACES)
+        y = x * (a * x + b)
+        y /= x * (c * x + d) + k
+    else:
+        y = x
+    np.minimum(y, f(1.0), out=y)
+    srgb = f(1.055) * np.power(y, f(1 / 2.4)) - f(0.055)
+    dark = y <= f(0.0031308)
+    srgb[dark] = f(12.92) * y[dark]
+    out = np.rint(srgb * f(255.0)).astype(np.uint8)
     out[~seen] = np.round(255.0 * np.asarray(background, dtype=np.float64)).astype(np.uint8)
     return out
