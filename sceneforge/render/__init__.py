@@ -7,6 +7,9 @@ Two renderers behind one interface (``render(house, camera) -> (H, W, 3) uint8 s
   lights (:mod:`.lights`), milliseconds per frame;
 - ``pathtraced`` (:mod:`.pathtrace`): Mitsuba 3 on the CPU (LLVM) or an NVIDIA GPU (CUDA),
   global illumination with soft shadows, a fixed sample count and seed.
+
+Both compute linear radiance from the same lights (:mod:`.lights`) and turn it into the
+image with the same exposure and tone curve (:mod:`.tonemap`).
 """
 
 from __future__ import annotations

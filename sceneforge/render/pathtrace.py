@@ -17,9 +17,12 @@ while the pixels on either side of it show what the layers' centre ray sees.
 Scene. The house's draw batches (:func:`~sceneforge.render.raster.house_batches`: every
 face group with its own material) become two-sided diffuse meshes: reflectance = linear
 base colour × the sRGB texture decoded to linear (with the material's wrapping), or ×
-the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.lights`):
-point lights for lamps and fallbacks, spot lights for windows, with the raster mode's
-irradiance × :data:`EXPOSURE`; the ambient term is not added (indirect light stands in for it). The integrator is
+the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.lights`,
+the same lumens and candela): point lights for lamps and fallbacks, and every window an
+area emitter of the sky's radiance (its faces wound into the room, reflecting nothing)
+in place of the raster mode's spot light; no ambient term (the path tracer traces the
+indirect light). The radiance goes through the same exposure and tone-mapping step as
+the raster mode's (:func:`sceneforge.render.tonemap.tonemap`). The integrator is
 Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces.
 
 Determinism. A fixed sample count and seed give the same image on the same machine and

@@ -19,17 +19,24 @@ Look. Every face group of every instance is drawn with its own material
 (``Instance.materials``): linear base colour × the sRGB texture decoded to linear (with
 the material's wrapping, bilinear and mipmapped) × the vertex colours, opaque (alpha is
 ignored, as the depth layers see glass too). Shading is per pixel, by pyrender's shader with the
-house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room) and
-an ambient term. The shader is pyrender's own with four changes made when it is loaded
+house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room, in
+lumens and candela, 1/d² falloff) plus each room's indirect light (``ambient`` × its flux
+over its surface). The shader is pyrender's own with six changes made when it is loaded
 (:func:`_mesh_shader`): Lambertian (the houses' materials are diffuse colours, and the
 path tracer shades them so too), a face seen from behind is shaded with its normal turned to the
 viewer (faces have no consistent winding in real houses), no light is nearer than
-``light_min_distance``, and the output is exactly sRGB-encoded (pyrender uses γ = 2.2).
+``light_min_distance``, a spot light (a window) falls off as cos θ inside its cone (a
+Lambertian panel's far field), emission is added once (pyrender squares the factor), and
+the output is the linear radiance itself, into a float framebuffer. Every view's radiance
+then goes through the exposure and tone-mapping step both modes share
+(:func:`sceneforge.render.tonemap.tonemap`). Windows are drawn emitting the sky's radiance.
 A room's geometry is one pyrender mesh lit by that room's lights only (up to
 :data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
-walls, and every fragment evaluates only its room's few lights.
-Shadows (``RenderConfig.shadows``) come from shadow maps of the spot lights (windows);
-point lights cast none (pyrender has no point-light shadows).
+walls, and every fragment evaluates only its room's few lights. Its faces without a
+texture or emission are one draw (their base colours in the vertex colours).
+Shadows (``RenderConfig.shadows``, off by default) come from shadow maps of the spot
+lights (windows); point lights (lamps, fallbacks) cast none: pyrender 0.1.45 raises
+"Point light shadows not implemented" (``Renderer._bind_lighting``).
 
 The same view always gives the same bytes on the same machine (GL and driver); across
 GPUs and drivers, shading and texture filtering may differ by a few levels of 8-bit
