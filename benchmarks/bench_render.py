@@ -14,7 +14,11 @@ In one run on the same scenes and cameras:
   previous one freed every other frame). RSS is sampled after glibc's ``malloc_trim``; a
   single sample depends on the heap layout of its moment, so the trend over all samples is
   the leak figure.
-- ``--figure PNG``: one view of the breakfast room in each mode side by side (the README's).
+- the raster mode's split: ms per frame at 8×6 pixels (our Python, pyrender's and the
+  driver's per-draw work, the tone mapping of a few pixels: almost no rasterisation) next to
+  320×240, whose difference is the rasteriser's (on Mesa's llvmpipe: CPU threads).
+- ``--figure PNG``: one view of the breakfast room in each mode side by side (the README's),
+  with the fraction of its pixels clipped to white.
 
     python benchmarks/bench_render.py [--views 3] [--frames 500] [--pt-frames 20] [--samples 64]
 """
@@ -85,6 +89,23 @@ def scenes_and_cameras(views: int):
     return out
 
 
+def raster_split(scenes, repeats: int) -> list[float]:
+    """Per scene: raster ms per frame at 8×6 pixels, best of ``repeats`` passes over its views."""
+    out = []
+    with open_renderer("raster", 8, 6) as r:
+        for _, house, cameras in scenes:
+            small = [c.resized(8, 6) for c in cameras]
+            r.render(house, small[0])
+            best = float("inf")
+            for _ in range(repeats):
+                start = time.perf_counter()
+                for c in small:
+                    r.render(house, c)
+                best = min(best, time.perf_counter() - start)
+            out.append(1e3 * best / len(small))
+    return out
+
+
 def time_mode(mode: str, scenes, repeats: int, samples: int) -> list[tuple[float, float]]:
     """Per scene: (ms per frame with its scene built, best of ``repeats`` passes over its views;
     ms of the first frame, scene build included). Mode ``raster+shadows``: raster with the
@@ -137,6 +158,7 @@ def figure(path: Path, samples: int) -> None:
             start = time.perf_counter()
             rgb = r.render(house, camera)
             seconds = time.perf_counter() - start
+        print(f"figure: {mode}: {100 * (rgb.max(-1) == 255).mean():.2f} % of pixels clipped to white")
         panel = Image.fromarray(rgb)
         label = f"--rgb {mode}" + (f" ({samples} spp)" if mode == "pathtraced" else "")
         draw = ImageDraw.Draw(panel)
@@ -182,6 +204,13 @@ def main():
         cells = "".join(f"{times[m][k][0]:>14.1f} ({times[m][k][1]:>8.0f})" for m in modes)
         ratios = "".join(f"{times[m][k][0] / times['raster'][k][0]:>25.1f}×" for m in others)
         print(f"{name:<22}{cells}{ratios}")
+
+    if "raster" in modes:
+        split = raster_split(scenes, 3 * args.repeats)
+        print("\nraster, ms per frame: at 8×6 (Python, draw calls, tone mapping: no rasterising to speak of) "
+              "and the rest of a 320×240 frame (the rasteriser)")
+        for k, (name, _, _) in enumerate(scenes):
+            print(f"  {name:<22}{split[k]:>8.1f} + {times['raster'][k][0] - split[k]:>8.1f}")
 
     print("\nresident memory of one renderer (a worker's), a new scene every 2 frames, after malloc_trim")
     for mode in (m for m in modes if not m.endswith("+shadows")):

@@ -117,3 +117,22 @@ def test_ply_vertex_colours_become_the_instance_colours(tmp_path):
     (inst,) = load_generic(path, LoadOptions()).instances
     np.testing.assert_allclose(inst.colors, [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 1]])
     assert inst.material.base_color == (1.0, 1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("element", ["vertex", "face"])
+def test_ply_colours_are_srgb_decoded_to_linear(element, tmp_path):
+    """PLY colours are display (sRGB) values: byte 128 is linear 0.2158, not 0.502; alpha stays linear."""
+    colour = " 128 64 255 128"
+    vertex_props = "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar alpha\n"
+    path = tmp_path / "c.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    + (vertex_props if element == "vertex" else "") + "element face 1\n"
+                    "property list uchar int vertex_indices\n" + (vertex_props if element == "face" else "")
+                    + "end_header\n" + "".join(f"{v}{colour if element == 'vertex' else ''}\n"
+                                                for v in ("0 0 0", "1 0 0", "0 1 0"))
+                    + "3 0 1 2" + (colour if element == "face" else "") + "\n")
+    (inst,) = load_generic(path, LoadOptions()).instances
+    expected = [((128 / 255 + 0.055) / 1.055) ** 2.4, ((64 / 255 + 0.055) / 1.055) ** 2.4, 1.0, 128 / 255]
+    got = inst.colors[0] if element == "vertex" else inst.material.base_color
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    assert abs(expected[0] - 0.2158) < 1e-4

@@ -111,3 +111,60 @@ def test_store_records_the_rgb_mode(mi, tmp_path):
         "enabled": True, "mode": "pathtraced", "antialias": False, "samples": 2, "lighting": None}
     assert store.config.rgb.mode == "pathtraced"
     assert np.asarray(store.view(0)["rgb"]).std() > 5
+
+
+def lamp_and_window_room(window: bool):
+    """The box room with a floor lamp and a table (and a window on the left wall), seen towards the lamp."""
+    from sceneforge.cameras import look_at_camera
+    from sceneforge.houses import make_instance
+
+    house = box_room("room", size=4.0, height=3.0)
+    box_instance(house, "lamp", 35, (0.3, 1.2, 0.3), (1.2, 0.6, 1.2))
+    box_instance(house, "table", 7, (1.0, 0.7, 0.6), (-0.5, 0.35, 0.3))
+    if window:
+        make_instance(house, name="window", category=9, label="window", room_id="r0",
+                      vertices=[[-1.99, 1, -1], [-1.99, 2, -1], [-1.99, 2, 1], [-1.99, 1, 1]],
+                      faces=[[0, 1, 2], [0, 2, 3]])
+    return house, look_at_camera([0.3, 1.5, -1.8], [-0.2, -0.3, 1.0], width=80, height=60)
+
+
+def test_lamp_lit_room_is_exposed_without_clipping(mi):
+    """The shared exposure and tone curve: next to the lamp almost nothing clips to white."""
+    house, camera = lamp_and_window_room(window=False)
+    with open_renderer("pathtraced", 80, 60, samples=8) as r:
+        rgb = r.render(house, camera)
+    assert (rgb.max(-1) == 255).mean() < 0.005
+    assert 90 < np.median(rgb) < 170
+
+
+def test_auto_exposure_is_invariant_to_scaling_every_light_path_traced(mi):
+    """4× every lamp and the sky: the same image with auto exposure (to a level of rounding:
+    the path tracer's float32 sums), a brighter one at a fixed exposure."""
+    from sceneforge.render import RenderConfig
+
+    house, camera = lamp_and_window_room(window=True)
+    images = {}
+    for scale in (1.0, 4.0):
+        for exposure in (None, 0.005):
+            config = RenderConfig(lamp_power=800.0 * scale, sky_luminance=1000.0 * scale, exposure=exposure)
+            with open_renderer("pathtraced", 80, 60, samples=4, config=config) as r:
+                images[scale, exposure] = r.render(house, camera).astype(int)
+    assert np.abs(images[4.0, None] - images[1.0, None]).max() <= 1
+    assert (images[4.0, 0.005] - images[1.0, 0.005]).mean() > 20
+
+
+def test_window_is_an_area_light_of_the_sky(mi):
+    """A room with a window and no lamp: no fallback light, the window's pixels show the
+    sky's radiance exactly, and the room is lit."""
+    from sceneforge.render import RenderConfig, house_lights
+
+    house, camera = lamp_and_window_room(window=True)
+    house.instances = [i for i in house.instances if i.name != "lamp"]
+    config = RenderConfig(sky_luminance=700.0)
+    assert [light.source for light in house_lights(house, config)] == ["window"]
+    camera = camera.__class__(camera.K, pose_from_view([0.5, 1.5, 0.0], [-1.0, 0.0, 0.0]), 80, 60)
+    with open_renderer("pathtraced", 80, 60, samples=4, config=config) as r:
+        radiance, seen = r.render_linear(house, camera)
+    centre = radiance[28:32, 38:42]
+    np.testing.assert_allclose(centre, 700.0, rtol=1e-5)  # every sample sees the emitter
+    assert seen.all() and (radiance[55:] > 0).all()  # the floor is lit

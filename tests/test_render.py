@@ -1,6 +1,7 @@
 """RGB rendering through pyrender/EGL (SPEC §8): pixel-aligned with the ray-traced layers,
-materials and textures the right way up, deterministic baked lighting, one renderer reused
-across houses, and one-line errors when EGL cannot work.
+materials and textures the right way up, per-pixel lights in photometric units, one
+exposure and tone-mapping step, one renderer reused across houses, and one-line errors
+when EGL cannot work.
 
 Golden images: ``tests/golden/*.png`` were rendered with Mesa's llvmpipe. After a deliberate
 change of the look, regenerate them with ``SCENEFORGE_REGEN_GOLDEN=1 pytest tests/test_render.py``
@@ -41,7 +42,10 @@ from sceneforge.render import (
     linear_to_srgb,
     room_lights,
     srgb_to_linear,
+    tonemap,
 )
+from sceneforge.render.lights import WINDOW_CONE, room_ambient
+from sceneforge.render.tonemap import KEY, aces, auto_exposure
 
 from .conftest import BREAKFAST_ROOM, box_instance, box_room
 
@@ -50,7 +54,7 @@ pytest.importorskip("pyrender", reason="pyrender is not installed (pip install '
 GOLDEN = Path(__file__).parent / "golden"
 REGEN = os.environ.get("SCENEFORGE_REGEN_GOLDEN") == "1"
 #: light every surface with exactly its base colour: rendered pixel = sRGB(linear texel × base)
-UNLIT = RenderConfig(ambient=1.0, light=0.0, window_light=0.0)
+UNLIT = RenderConfig(flat=True, ambient=1.0, exposure=1.0, tone="clip")
 
 
 @pytest.fixture(scope="module")
@@ -212,7 +216,7 @@ def test_shading_is_linear_texels_times_light():
     the 64 of shading in sRGB space: textures are decoded, shaded linearly, encoded."""
     texture = Image.fromarray(np.full((4, 4, 3), 128, np.uint8))
     house, camera = quad_house(texture)
-    with Renderer(64, 48, config=RenderConfig(ambient=0.5, light=0.0, window_light=0.0)) as r:
+    with Renderer(64, 48, config=RenderConfig(flat=True, ambient=0.5, exposure=1.0, tone="clip")) as r:
         rgb = r.render(house, camera).astype(int)
     expected = round(255 * float(linear_to_srgb(0.5 * srgb_to_linear(128 / 255))))
     assert expected == 92
@@ -221,13 +225,13 @@ def test_shading_is_linear_texels_times_light():
 
 def test_golden_textured_quad(tmp_path):
     """The quadrant texture on a quad under a room light, as it looked (orientation, colour
-    space, per-pixel falloff); tolerance for GL drivers' rounding."""
+    space, per-pixel falloff, exposure and tone curve); tolerance for GL drivers' rounding."""
     texture = quadrant_image()
     texture.save(tmp_path / "t.png")
     house, camera = quad_house(tmp_path / "t.png")
     house.rooms.append(Room("r", "room", 0))
     house.instances[0].room_id = "r"
-    with Renderer(64, 48, config=RenderConfig(ambient=0.2, light=0.6, light_below_ceiling=0.0)) as r:
+    with Renderer(64, 48, config=RenderConfig(ambient=0.2, light_below_ceiling=0.0)) as r:
         rgb = r.render(house, camera)
     compare_golden(rgb, "textured_quad.png")
     # per pixel: the centre of the quad (nearest the light in front of it) is the brightest white
@@ -268,15 +272,16 @@ def test_box_with_two_materials_shows_each_where_its_faces_are():
 
 def test_room_light_hangs_under_the_ceiling_centre():
     house = boxed_room()
-    (light,) = room_lights(house, RenderConfig(light=0.5, light_below_ceiling=0.3)).values()
+    (light,) = room_lights(house, RenderConfig(lamp_power=500.0, light_below_ceiling=0.3)).values()
     np.testing.assert_allclose(light.position, [0, 3.1 - 0.3, 0])
-    # the farthest corner of the room's bounds, (±2.1, -0.1, ±2.1), receives `light`
-    np.testing.assert_allclose(light.intensity, 0.5 * (2 * 2.1 ** 2 + 2.9 ** 2))
+    # an isotropic point source of 500 lm: 500 / 4π cd
+    np.testing.assert_allclose(light.intensity, 500.0 / (4 * np.pi))
+    assert light.flux == 500.0
 
 
 def test_lamps_replace_the_fallback_and_windows_shine_inwards():
     house = boxed_room()
-    config = RenderConfig(light=0.4, window_light=0.2)
+    config = RenderConfig(lamp_power=400.0, sky_luminance=1500.0)
     assert [light.source for light in house_lights(house, config)] == ["fallback"]
     lamp = box_instance(house, "lamp", 35, (0.2, 1.6, 0.2), (1.0, 0.8, 1.0))  # a floor lamp
     window = make_instance(house, name="window", category=9, label="window", room_id=lamp.room_id,
@@ -287,41 +292,189 @@ def test_lamps_replace_the_fallback_and_windows_shine_inwards():
     hanging = box_instance(house, "pendant", 35, (0.3, 0.2, 0.3), (-1.0, 2.7, 0.0))
     np.testing.assert_allclose(house_lights(house, config)[1].position, [-1.0, 2.6 - 0.3, 0.0])  # below it
     house.instances.remove(hanging)
+    # the window: a 2 × 1 m Lambertian panel of 1500 cd/m² facing into the room (+x)
     np.testing.assert_allclose(lights[1].position, [-2, 1.5, 0])
-    assert lights[1].direction[0] > 0 and lights[1].direction[1] < 0  # into the room, downwards
+    np.testing.assert_allclose(lights[1].direction, [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose([lights[1].intensity, lights[1].flux], [1500.0 * 2, np.pi * 1500.0 * 2])
+    assert lights[1].instance == window.id and lights[1].radiance == 1500.0
     assert window.envelope
+    # a window lights its room: no fallback; without sky light the fallback comes back
+    house.instances.remove(lamp)
+    assert [light.source for light in house_lights(house, config)] == ["window"]
+    assert [light.source for light in house_lights(house, RenderConfig(sky_luminance=0.0))] == ["fallback"]
 
 
-def test_per_pixel_light_is_lambert_over_distance_squared_from_either_side():
-    """A floor lit by its room's light, per pixel: sRGB(base · (ambient + I cos / d²)) at the
-    surface point of each pixel centre, whichever way the floor's faces are wound."""
-    config = RenderConfig(ambient=0.2, light=0.5, light_below_ceiling=0.0, window_light=0.0)
+def lit_floor():
+    """An object floor in a room whose bounds' top is at y = 2 (a marker), and a camera
+    looking down at it."""
     house = House(id="two", instances=[], rooms=[Room("a", "room", 0)])
     # an object (not envelope), so that D1 and its instance layer see it
     floor = make_instance(house, name="board", category=0, label="board", room_id="a",
                           vertices=[[-2, 0, 0], [2, 0, 0], [2, 0, 4], [-2, 0, 4]], faces=[[0, 2, 1], [0, 3, 2]],
                           material=Material((0.6, 0.6, 0.6, 1.0)))
-    # a marker that sets the top of the room's bounds at y = 2
     make_instance(house, name="marker", category=0, label="marker", room_id="a",
                   vertices=[[0, 2, 2], [0.01, 2, 2], [0, 2, 2.01]], faces=[[0, 1, 2]])
-    (light,) = house_lights(house, config)
-    np.testing.assert_allclose(light.position, [0.0, 2.0, 2.0], atol=0.01)
     camera = look_at_camera([0, 1.0, -0.5], [0, -0.6, 1], width=64, height=48)
+    return house, floor, camera
+
+
+def floor_points(house, floor, camera):
+    """(mask (H, W) of the pixels that see the floor, world points of their first hits)."""
     hits = frontal_layers(house, camera)
     seen = hits.instance[0] == floor.id
     origins, directions, depth_scale = camera.rays()
     t = (hits.depth[0].ravel() / depth_scale)[seen.ravel()]
-    points = origins[seen.ravel()] + t[:, None] * directions[seen.ravel()]
+    return seen, origins[seen.ravel()] + t[:, None] * directions[seen.ravel()]
+
+
+def test_per_pixel_light_is_lambert_over_distance_squared_from_either_side():
+    """A floor lit by its room's light, per pixel: radiance = base / π · (E_ambient + I cos / d²)
+    at the surface point of each pixel centre, whichever way the floor's faces are wound;
+    the image is the tone-mapped radiance."""
+    config = RenderConfig(ambient=0.2, lamp_power=600.0, light_below_ceiling=0.0)
+    house, floor, camera = lit_floor()
+    (light,) = house_lights(house, config)
+    np.testing.assert_allclose(light.position, [0.0, 2.0, 2.0], atol=0.01)
+    (ambient,) = room_ambient(house, config).values()
+    size = np.ptp(np.concatenate([i.vertices for i in house.instances]), axis=0)
+    area = 2 * (size[0] * size[1] + size[1] * size[2] + size[0] * size[2])
+    np.testing.assert_allclose(ambient, 0.2 * 600.0 / area)
+    seen, points = floor_points(house, floor, camera)
     to_light = light.position - points
     d2 = (to_light ** 2).sum(1)
     irradiance = light.intensity * (to_light[:, 1] / np.sqrt(d2)) / np.maximum(d2, config.light_min_distance ** 2)
-    expected = 255 * linear_to_srgb(0.6 * (config.ambient + irradiance))
+    expected = 0.6 / np.pi * (ambient + irradiance)
     for flip in (False, True):
         if flip:
             floor.faces = floor.faces[:, ::-1].copy()
         with Renderer(64, 48, config=config) as r:
-            rgb = r.render(house, camera).astype(float)
-        assert np.abs(rgb[seen][:, 0] - expected).max() <= 2.0, flip
+            radiance, drawn = r.render_linear(house, camera)
+            rgb = r.render(house, camera)
+        assert (drawn == seen).mean() > 0.99  # the marker is a few pixels
+        np.testing.assert_allclose(radiance[seen][:, 0], expected, rtol=2e-3)
+        np.testing.assert_array_equal(rgb, tonemap(radiance, drawn))
+
+
+def test_window_is_a_lambertian_panel_of_sky_light():
+    """A room lit only by a window: the window shows the sky's radiance, and a floor point
+    receives the panel's far field, L · A · cos θ_window · cos θ_floor / d²."""
+    config = RenderConfig(ambient=0.0, sky_luminance=800.0)
+    house, floor, camera = lit_floor()
+    window = make_instance(house, name="window", category=9, label="window", room_id="a",
+                           vertices=[[-0.5, 0.6, 4.0], [0.5, 0.6, 4.0], [0.5, 1.2, 4.0], [-0.5, 1.2, 4.0]],
+                           faces=[[0, 2, 1], [0, 3, 2]])  # facing the camera
+    camera = look_at_camera([0, 1.0, -0.5], [0, -0.25, 1], width=64, height=48)
+    (light,) = house_lights(house, config)
+    assert light.source == "window" and light.instance == window.id
+    np.testing.assert_allclose(light.direction, [0, 0, -1], atol=1e-12)
+    seen, points = floor_points(house, floor, camera)
+    # the pixels whose ray meets the window plane inside the window, nothing in front of it
+    origins, directions, _ = camera.rays()
+    hit = origins + ((4.0 - origins[:, 2]) / directions[:, 2])[:, None] * directions
+    on_window = ((hit[:, 1] > 0.61) & (hit[:, 1] < 1.19) & (np.abs(hit[:, 0]) < 0.49)).reshape(seen.shape)
+    to_light = light.position - points
+    d = np.sqrt((to_light ** 2).sum(1))
+    cos_window = (light.direction @ -to_light.T) / d
+    cos_floor = to_light[:, 1] / d
+    lit = cos_window > np.cos(WINDOW_CONE)
+    expected = 0.6 / np.pi * 800.0 * 0.6 * np.where(lit, cos_window, 0) * cos_floor / np.maximum(d, 0.3) ** 2
+    with Renderer(64, 48, config=config) as r:
+        radiance, _ = r.render_linear(house, camera)
+    assert on_window.sum() > 10 and lit.mean() > 0.5
+    np.testing.assert_allclose(radiance[seen][:, 0], expected, rtol=2e-3, atol=1e-3)
+    assert (radiance[on_window][:, 0] >= 800.0).all()  # its own radiance (and the little it reflects)
+
+
+def test_window_shadows():
+    """With ``shadows``, a box between the window and the floor shadows the floor behind it
+    (window light only: those pixels go dark) and changes little elsewhere. (Lamps cast no
+    shadows: pyrender 0.1.45 raises "Point light shadows not implemented".)"""
+    house, floor, _ = lit_floor()
+    make_instance(house, name="window", category=9, label="window", room_id="a",
+                  vertices=[[-0.5, 0.6, 4.0], [0.5, 0.6, 4.0], [0.5, 1.2, 4.0], [-0.5, 1.2, 4.0]],
+                  faces=[[0, 2, 1], [0, 3, 2]])
+    box_instance(house, "crate", 0, (0.8, 0.5, 0.2), (0.0, 0.25, 3.0), room_id="a")
+    camera = look_at_camera([0, 1.6, -0.5], [0, -0.6, 1], width=64, height=48)
+    seen, points = floor_points(house, floor, camera)
+    # floor points whose segment to the window's centre passes through the crate
+    t = (3.0 - points[:, 2]) / (4.0 - points[:, 2])
+    y, x = points[:, 1] + t * (0.9 - points[:, 1]), points[:, 0] * (1 - t)
+    behind = (points[:, 2] < 2.8) & (y < 0.45) & (np.abs(x) < 0.35)
+    assert behind.sum() > 10
+    radiance = {}
+    for shadows in (False, True):
+        with Renderer(64, 48, config=RenderConfig(ambient=0.0, shadows=shadows)) as r:
+            radiance[shadows] = r.render_linear(house, camera)[0][seen][:, 0]
+    assert (radiance[True][behind] < 0.05 * radiance[False][behind]).mean() > 0.9
+    # away from the crate: pyrender's shadow-map filtering (PCF) darkens light that grazes
+    # the floor (by a tenth on most such pixels, a quarter at worst here), and never brightens
+    lit = (points[:, 2] < 2.5) & (np.abs(points[:, 0]) > 1.2)
+    ratio = radiance[True][lit] / radiance[False][lit]
+    assert lit.sum() > 100 and ratio.min() > 0.7 and ratio.max() < 1.0 + 1e-6 and np.median(ratio) > 0.9
+
+
+def lamp_lit_room() -> tuple[House, Camera]:
+    """The box room with a floor lamp and a table, seen towards the lamp."""
+    house = boxed_room()
+    box_instance(house, "lamp", 35, (0.3, 1.2, 0.3), (1.2, 0.6, 1.2))
+    box_instance(house, "table", 7, (1.0, 0.7, 0.6), (-0.5, 0.35, 0.3))
+    return house, look_at_camera([0.3, 1.5, -1.8], [0.2, -0.3, 1.0], width=160, height=120)
+
+
+def test_lamp_lit_room_is_exposed_without_clipping():
+    """Auto exposure and the filmic curve: almost no pixel clips to white next to the lamp,
+    where clipping the radiance at a brighter exposure clips a sizeable part of the view;
+    the median seen pixel lands at mid-grey."""
+    house, camera = lamp_lit_room()
+    with Renderer(160, 120) as r:
+        rgb = r.render(house, camera)
+        radiance, seen = r.render_linear(house, camera)
+    clipped = (rgb.max(-1) == 255).mean()
+    assert clipped < 0.005, clipped
+    harsh = tonemap(radiance, seen, exposure=4 * auto_exposure(radiance, seen), tone="clip")
+    assert (harsh.max(-1) == 255).mean() > 0.05
+    luminance = tonemap(radiance, seen, exposure=auto_exposure(radiance, seen), tone="clip") @ [0.2126, 0.7152, 0.0722]
+    assert abs(np.median(luminance[seen]) - 255 * float(linear_to_srgb(KEY))) < 3
+
+
+def test_auto_exposure_is_invariant_to_scaling_every_light():
+    """4× every lamp and the sky (a power of two: the radiance scales exactly): the same bytes
+    with auto exposure; a fixed exposure sees the change."""
+    house, camera = lamp_lit_room()
+    make_instance(house, name="window", category=9, label="window", room_id="r0",
+                  vertices=[[-1.99, 1, -1], [-1.99, 2, -1], [-1.99, 2, 1], [-1.99, 1, 1]], faces=[[0, 1, 2], [0, 2, 3]])
+    images = {}
+    for scale in (1.0, 4.0):
+        for exposure in (None, 0.005):
+            config = RenderConfig(lamp_power=800.0 * scale, sky_luminance=1000.0 * scale, exposure=exposure)
+            with Renderer(160, 120, config=config) as r:
+                images[scale, exposure] = r.render(house, camera)
+    np.testing.assert_array_equal(images[4.0, None], images[1.0, None])
+    assert (images[4.0, 0.005].astype(int) - images[1.0, 0.005]).mean() > 20
+
+
+def test_tone_curve():
+    """ACES maps 0 to 0 and is increasing, white only past ~7.2; the sRGB encoding is exact;
+    pixels that see nothing get the background."""
+    x = np.linspace(0, 10, 1001)
+    y = aces(x)
+    assert y[0] == 0 and (np.diff(y[x < 7.0]) > 0).all() and y[x > 7.3].min() == 1.0 and y[x < 7.0].max() < 1.0
+    np.testing.assert_allclose(aces(1e-6) / 1e-6, 0.03 / 0.14, rtol=1e-3)
+    radiance = np.array([[[0.5, 0.5, 0.5], [2.0, 0.0, 1.0]]])
+    seen = np.array([[True, False]])
+    out = tonemap(radiance, seen, exposure=None, background=(0.0, 0.5, 1.0))
+    np.testing.assert_array_equal(out[0, 1], [0, 128, 255])
+    np.testing.assert_array_equal(out[0, 0], np.round(255 * linear_to_srgb(aces(KEY))))
+    with pytest.raises(ValueError, match="unknown tone curve 'gamma'"):
+        tonemap(radiance, seen, tone="gamma")
+    # the float32 evaluation is the float64 reference's, to a level of rounding
+    rng = np.random.default_rng(0)
+    radiance = rng.gamma(0.7, 1.0, (200, 300, 3)).astype(np.float32)
+    seen = np.ones((200, 300), bool)
+    for tone, curve in (("aces", aces), ("clip", lambda v: np.clip(v, 0, 1))):
+        fast = tonemap(radiance, seen, exposure=0.8, tone=tone).astype(int)
+        reference = np.round(255 * linear_to_srgb(curve(0.8 * radiance.astype(np.float64))))
+        assert np.abs(fast - reference).max() <= 1 and (fast == reference).mean() > 0.999
 
 
 def test_a_room_is_lit_by_its_own_lights_only():

@@ -7,6 +7,9 @@ Two renderers behind one interface (``render(house, camera) -> (H, W, 3) uint8 s
   lights (:mod:`.lights`), milliseconds per frame;
 - ``pathtraced`` (:mod:`.pathtrace`): Mitsuba 3 on the CPU (LLVM) or an NVIDIA GPU (CUDA),
   global illumination with soft shadows, a fixed sample count and seed.
+
+Both compute linear radiance from the same lights (:mod:`.lights`) and turn it into the
+image with the same exposure and tone curve (:mod:`.tonemap`).
 """
 
 from __future__ import annotations
@@ -23,16 +26,15 @@ from .raster import (
     Renderer,
     egl_devices,
     house_batches,
-    linear_to_srgb,
-    srgb_to_linear,
 )
+from .tonemap import linear_to_srgb, srgb_to_linear, tonemap
 
 #: the RGB modes of ``sceneforge render --rgb`` that render something
 MODES = ("raster", "pathtraced")
 
 __all__ = ["FAR", "INSTALL_EGL", "INSTALL_RENDER", "MODES", "NEAR", "Batch", "EGLDevice", "Light", "RenderConfig",
            "Renderer", "egl_devices", "house_batches", "house_lights", "linear_to_srgb", "open_renderer",
-           "room_lights", "srgb_to_linear"]
+           "room_lights", "srgb_to_linear", "tonemap"]
 
 
 def open_renderer(mode: str, width: int, height: int, *, antialias: bool = False, config: RenderConfig | None = None,

@@ -17,9 +17,12 @@ while the pixels on either side of it show what the layers' centre ray sees.
 Scene. The house's draw batches (:func:`~sceneforge.render.raster.house_batches`: every
 face group with its own material) become two-sided diffuse meshes: reflectance = linear
 base colour × the sRGB texture decoded to linear (with the material's wrapping), or ×
-the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.lights`):
-point lights for lamps and fallbacks, spot lights for windows, with the raster mode's
-irradiance × :data:`EXPOSURE`; the ambient term is not added (indirect light stands in for it). The integrator is
+the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.lights`,
+the same lumens and candela): point lights for lamps and fallbacks, and every window an
+area emitter of the sky's radiance (its faces wound into the room, reflecting nothing)
+in place of the raster mode's spot light; no ambient term (the path tracer traces the
+indirect light). The radiance goes through the same exposure and tone-mapping step as
+the raster mode's (:func:`sceneforge.render.tonemap.tonemap`). The integrator is
 Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces.
 
 Determinism. A fixed sample count and seed give the same image on the same machine and
@@ -45,16 +48,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import MissingDependencyError, SceneforgeError
-from .lights import WINDOW_CONE, house_lights
-from .raster import (
-    RenderConfig,
-    _texels,
-    _texture_key,
-    check_camera_size,
-    house_batches,
-    linear_to_srgb,
-    srgb_to_linear,
-)
+from .lights import house_lights
+from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
+from .tonemap import srgb_to_linear, tonemap
 
 if TYPE_CHECKING:
     from ..cameras import Camera
@@ -67,10 +63,6 @@ INSTALL_LLVM = "sudo apt-get install libllvm19 (LLVM 16 or newer), or set DRJIT_
 MIN_LLVM = 16
 #: light bounces of the path tracer
 MAX_DEPTH = 6
-#: the lights' intensity relative to the raster mode's: in a closed room of albedo ~0.8,
-#: light bounces add up to several times the direct light, which the raster mode's ambient
-#: term only approximates; this keeps the two modes' images about as bright
-EXPOSURE = 0.35
 #: samples per pixel when none is given
 DEFAULT_SAMPLES = 64
 #: fx and fy may differ by this fraction, and the skew by this many pixels
@@ -178,15 +170,18 @@ class PathTracer:
         return self.mi.variant()
 
     def render(self, house: "House", camera: "Camera") -> np.ndarray:
-        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``."""
+        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`~.tonemap.tonemap`
+        of :meth:`render_linear`)."""
+        radiance, seen = self.render_linear(house, camera)
+        c = self.config
+        return tonemap(radiance, seen, exposure=c.exposure, tone=c.tone, background=c.background)
+
+    def render_linear(self, house: "House", camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) float64 linear radiance (cd/m²) of the view and the (H, W) bool mask of
+        the pixels that see a surface (any of their samples)."""
         if self.mi is None:
             raise SceneforgeError("the renderer is closed")
         check_camera_size(camera, self.width, self.height)
-        linear = self.render_linear(house, camera)
-        return np.round(255.0 * linear_to_srgb(linear)).astype(np.uint8)
-
-    def render_linear(self, house: "House", camera: "Camera") -> np.ndarray:
-        """(H, W, 3) float64 linear radiance of the view, before encoding."""
         mi = self.mi
         if house is not self._house:
             self._scene, self._house = self._build_scene(house), house
@@ -194,18 +189,18 @@ class PathTracer:
         sensor = mi.load_dict({
             **spec,
             "to_world": mi.ScalarTransform4f(spec["to_world"].tolist()),
-            "film": {"type": "hdrfilm", "width": self.width, "height": self.height, "pixel_format": "rgb",
+            "film": {"type": "hdrfilm", "width": self.width, "height": self.height, "pixel_format": "rgba",
                      "rfilter": {"type": "box"}},
             "sampler": {"type": "independent", "sample_count": 1},
         })
         view_seed = (self.seed * 1_000_003 + zlib.crc32(camera.K.tobytes() + camera.cam_to_world.tobytes())) % 2 ** 31
-        total = np.zeros((self.height, self.width, 3))
+        total = np.zeros((self.height, self.width, 4))
         for k in range(self.samples):
             image = mi.render(self._scene, sensor=sensor, spp=1, seed=view_seed + k)
-            total += np.asarray(image, dtype=np.float64)[..., :3]
+            total += np.nan_to_num(np.asarray(image, dtype=np.float64)[..., :4], nan=0.0, posinf=0.0, neginf=0.0)
         out = total / self.samples
-        nothing = srgb_to_linear(np.asarray(self.config.background))
-        return np.where(np.isfinite(out), out, nothing)
+        # the film's alpha is the fraction of a pixel's samples that hit a surface
+        return out[..., :3], out[..., 3] > 0
 
     def close(self) -> None:
         """Forget the scene. Idempotent."""
@@ -222,26 +217,38 @@ class PathTracer:
 
     def _build_scene(self, house: "House"):
         mi = self.mi
-        scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True}}
-        background = srgb_to_linear(np.asarray(self.config.background))
-        if background.any():
-            scene["background"] = {"type": "constant", "radiance": {"type": "rgb", "value": background.tolist()}}
+        # a pixel sees nothing beyond the house (the background is applied after tone mapping)
+        scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH}}
+        lights = house_lights(house, self.config)
+        windows = {light.instance: light for light in lights if light.source == "window"}
         textures: dict[tuple, object] = {}
-        for k, batch in enumerate(house_batches(house)):
+        for k, batch in enumerate(house_batches(house, exclude=frozenset(windows))):
             scene[f"mesh{k:06d}"] = self._mesh(house, f"mesh{k:06d}", batch, textures)
-        for k, light in enumerate(house_lights(house, self.config)):
-            intensity = {"type": "rgb", "value": [light.intensity * np.pi * EXPOSURE] * 3}
-            if light.kind == "point":
-                scene[f"light{k:06d}"] = {"type": "point", "position": light.position.tolist(), "intensity": intensity}
-            else:
-                target = light.position + light.direction
-                scene[f"light{k:06d}"] = {
-                    "type": "spot", "intensity": intensity, "cutoff_angle": float(np.degrees(WINDOW_CONE)),
-                    "beam_width": 0.0,
-                    "to_world": mi.ScalarTransform4f().look_at(origin=light.position.tolist(),
-                                                               target=target.tolist(), up=_up(light.direction)),
-                }
+        # a window is an area emitter of the sky's radiance, its faces turned into the room
+        for k, inst in enumerate(i for i in house.instances if i.id in windows):
+            scene[f"window{k:06d}"] = self._window(inst, windows[inst.id])
+        for k, light in enumerate(light for light in lights if light.kind == "point"):
+            scene[f"light{k:06d}"] = {"type": "point", "position": light.position.tolist(),
+                                      "intensity": {"type": "rgb", "value": [light.intensity] * 3}}
         return mi.load_dict(scene)
+
+    def _window(self, inst, light):
+        """A Mitsuba mesh of a window's faces, each wound to face ``light.direction`` (into
+        the room), emitting ``light.radiance`` from that side and reflecting nothing."""
+        mi = self.mi
+        tri = inst.vertices[inst.faces].astype(np.float64)
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        inward = normal @ light.direction >= 0
+        faces = np.where(inward[:, None], inst.faces, inst.faces[:, ::-1])
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": [light.radiance] * 3}})
+        mesh = mi.Mesh(f"window{inst.id}", len(inst.vertices), len(faces), props=props, has_vertex_normals=False)
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = inst.vertices.astype(np.float32).ravel()
+        params["faces"] = faces.astype(np.uint32).ravel()
+        params.update()
+        return mesh
 
     def _mesh(self, house: "House", name: str, batch, textures: dict):
         """A Mitsuba mesh of one draw batch with its two-sided diffuse BSDF."""
@@ -276,7 +283,3 @@ class PathTracer:
         params.update()
         return mesh
 
-
-def _up(direction: np.ndarray) -> list[float]:
-    """An up vector not parallel to ``direction``."""
-    return [0.0, 0.0, 1.0] if abs(direction[1]) > 0.99 else [0.0, 1.0, 0.0]

@@ -19,17 +19,24 @@ Look. Every face group of every instance is drawn with its own material
 (``Instance.materials``): linear base colour × the sRGB texture decoded to linear (with
 the material's wrapping, bilinear and mipmapped) × the vertex colours, opaque (alpha is
 ignored, as the depth layers see glass too). Shading is per pixel, by pyrender's shader with the
-house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room) and
-an ambient term. The shader is pyrender's own with four changes made when it is loaded
+house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room, in
+lumens and candela, 1/d² falloff) plus each room's indirect light (``ambient`` × its flux
+over its surface). The shader is pyrender's own with six changes made when it is loaded
 (:func:`_mesh_shader`): Lambertian (the houses' materials are diffuse colours, and the
 path tracer shades them so too), a face seen from behind is shaded with its normal turned to the
 viewer (faces have no consistent winding in real houses), no light is nearer than
-``light_min_distance``, and the output is exactly sRGB-encoded (pyrender uses γ = 2.2).
+``light_min_distance``, a spot light (a window) falls off as cos θ inside its cone (a
+Lambertian panel's far field), emission is added once (pyrender squares the factor), and
+the output is the linear radiance itself, into a float framebuffer. Every view's radiance
+then goes through the exposure and tone-mapping step both modes share
+(:func:`sceneforge.render.tonemap.tonemap`). Windows are drawn emitting the sky's radiance.
 A room's geometry is one pyrender mesh lit by that room's lights only (up to
 :data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
-walls, and every fragment evaluates only its room's few lights.
-Shadows (``RenderConfig.shadows``) come from shadow maps of the spot lights (windows);
-point lights cast none (pyrender has no point-light shadows).
+walls, and every fragment evaluates only its room's few lights. Its faces without a
+texture or emission are one draw (their base colours in the vertex colours).
+Shadows (``RenderConfig.shadows``, off by default) come from shadow maps of the spot
+lights (windows); point lights (lamps, fallbacks) cast none: pyrender 0.1.45 raises
+"Point light shadows not implemented" (``Renderer._bind_lighting``).
 
 The same view always gives the same bytes on the same machine (GL and driver); across
 GPUs and drivers, shading and texture filtering may differ by a few levels of 8-bit
@@ -48,6 +55,7 @@ import functools
 import os
 import shutil
 import tempfile
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -57,7 +65,8 @@ import numpy as np
 
 from ..cameras import opencv_to_opengl
 from ..errors import HouseError, MissingDependencyError, SceneforgeError
-from .lights import Light, house_lights, room_bounds
+from .lights import WINDOW_CONE, Light, house_lights, room_ambient, room_bounds
+from .tonemap import TONES, tonemap
 
 if TYPE_CHECKING:
     from ..cameras import Camera
@@ -69,8 +78,9 @@ if TYPE_CHECKING:
 NEAR, FAR = 0.05, 1000.0
 #: lights of each kind (point, spot) that light one room's geometry
 MAX_LIGHTS = 8
-#: pyrender's diffuse term is the base colour × (1 - 0.04) / π per unit of light
-_DIFFUSE = (1.0 - 0.04) / np.pi
+#: pyrender's diffuse term is the base colour × (1 - 0.04) / π per unit of light; the
+#: lights are scaled by 1 / (1 - 0.04) so that it is the Lambertian base colour / π
+_DIFFUSE = 1.0 - 0.04
 
 INSTALL_RENDER = "pip install 'sceneforge[render]'"
 #: Debian/Ubuntu packages of libEGL and Mesa's EGL driver with its software rasteriser
@@ -80,42 +90,51 @@ INSTALL_EGL = "sudo apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri"
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """How rendered views look. Field docs become the config schema's descriptions."""
+    """How rendered views look (lights: :mod:`.lights`; exposure and tone: :mod:`.tonemap`).
+    Field docs become the config schema's descriptions."""
 
-    #: ambient light: the fraction of its base colour that every surface shows unlit
-    ambient: float = 0.3
-    #: strength of each lamp and each room's fallback light: a surface facing it at the
-    #: room's farthest corner shows this fraction of its base colour (1/d² falloff, so
-    #: nearer surfaces show more)
-    light: float = 0.25
-    #: strength of each window's light, as ``light`` (0: windows give no light)
-    window_light: float = 0.15
-    #: the fallback light of a room without lamps hangs this far below the top of its
-    #: room's bounds, metres
+    #: raster only: indirect light, as a fraction of a room's light flux spread over the
+    #: surface of its bounds (1: a room of mean albedo 0.5; the path tracer traces it)
+    ambient: float = 1.0
+    #: luminous flux of each lamp and of each room's fallback light, lumens (800: a 60 W
+    #: incandescent bulb); light falls off as 1/d²
+    lamp_power: float = 800.0
+    #: radiance of the sky seen through a window, cd/m² (1000: a dull overcast sky); every
+    #: window lights its room as a panel of this radiance (0: windows give no light)
+    sky_luminance: float = 1000.0
+    #: the fallback light of a room without lamps or windows hangs this far below the top
+    #: of its room's bounds, metres
     light_below_ceiling: float = 0.3
     #: nearer than this, a surface receives the light of this distance, metres
     light_min_distance: float = 0.3
-    #: shadows of the window lights (shadow maps; point lights cast none)
+    #: raster only: shadows of the window lights (shadow maps; point lights cast none)
     shadows: bool = False
+    #: exposure (radiance × it before the tone curve); None: automatic per view, the
+    #: median luminance of the pixels that see something lands at 18 % grey
+    exposure: float | None = None
+    #: tone curve after the exposure: ``aces`` (filmic: a soft shoulder, white at about 40×
+    #: mid-grey) or ``clip`` (none: exposed values clipped to [0, 1])
+    tone: typing.Literal["aces", "clip"] = "aces"
+    #: raster only, for checking materials: no lights, every surface shows ``ambient`` × its
+    #: base colour as radiance (with ``exposure`` 1 and ``tone`` clip: exactly its colour)
+    flat: bool = False
     #: sRGB colour (0..1) of pixels that see nothing
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
-        for name in ("ambient", "light", "window_light", "light_below_ceiling"):
+        for name in ("ambient", "lamp_power", "sky_luminance", "light_below_ceiling"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.light_min_distance > 0:
             raise ValueError(f"light_min_distance must be > 0, got {self.light_min_distance}")
+        if self.exposure is not None and not self.exposure > 0:
+            raise ValueError(f"exposure must be > 0 (or None: automatic), got {self.exposure}")
+        if self.tone not in TONES:
+            raise ValueError(f"tone must be one of {', '.join(TONES)}, got {self.tone!r}")
         if len(self.background) != 3 or not all(0 <= c <= 1 for c in self.background):
             raise ValueError(f"background must be 3 numbers in [0, 1], got {self.background}")
         # a list read back from a saved config would make the config unhashable
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
-
-
-def srgb_to_linear(c):
-    """Linear values of sRGB-encoded values in [0, 1] (IEC 61966-2-1)."""
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 def check_camera_size(camera: "Camera", width: int, height: int) -> None:
@@ -123,12 +142,6 @@ def check_camera_size(camera: "Camera", width: int, height: int) -> None:
     if camera.shape != (height, width):
         raise ValueError(f"camera is {camera.width}×{camera.height} but the renderer renders {width}×{height}; "
                          "use camera.resized()")
-
-
-def linear_to_srgb(c):
-    """sRGB-encoded values of linear values in [0, 1] (IEC 61966-2-1)."""
-    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
 
 
 # ---------------------------------------------------------------------------------------
@@ -147,6 +160,7 @@ class Batch:
     uv        : (3m, 2) float32  texture coordinates (OpenGL convention), or None
     material  : the :class:`~sceneforge.houses.model.Material` (its texture None when the
                 batch has no uv)
+    emission  : radiance its faces emit, cd/m² (a window's sky; 0 for every other batch)
     """
 
     room: str | None
@@ -156,6 +170,7 @@ class Batch:
     colors: np.ndarray | None
     uv: np.ndarray | None
     material: object
+    emission: float = 0.0
 
 
 def _texture_key(texture) -> object:
@@ -167,16 +182,21 @@ def _texture_key(texture) -> object:
     return id(texture)
 
 
-def house_batches(house: "House") -> list["Batch"]:
+def house_batches(house: "House", emission: dict[int, float] | None = None,
+                  exclude: frozenset[int] = frozenset()) -> list["Batch"]:
     """The house's face groups as draw batches: per room (in order of first instance), one
     per distinct material (in order of first use); instances without vertex colours and
-    with them are apart. An instance with a texture but no ``uv`` is drawn with its base
-    colour only."""
+    with them are apart, and so are emitting ones (``emission``: ``Instance.id`` → radiance,
+    the windows of :func:`~sceneforge.render.lights.house_lights`); the instances of
+    ``exclude`` (ids) are left out. An instance with a texture but no ``uv`` is drawn with
+    its base colour only."""
     from dataclasses import replace
 
     centres = {room: 0.5 * (b[0] + b[1]) for room, b in room_bounds(house).items()}
     parts: dict[tuple, tuple[object, list, list, list, list]] = {}
     for inst in house.instances:
+        if inst.id in exclude:
+            continue
         tri = inst.vertices[inst.faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
@@ -186,7 +206,8 @@ def house_batches(house: "House") -> list["Batch"]:
             if inst.uv is None and material.texture is not None:
                 material = replace(material, texture=None)
             key = (inst.room_id, tuple(float(c) for c in material.base_color), _texture_key(material.texture),
-                   tuple(material.wrap) if material.texture is not None else None, inst.colors is not None)
+                   tuple(material.wrap) if material.texture is not None else None, inst.colors is not None,
+                   float((emission or {}).get(inst.id, 0.0)))
             entry = parts.setdefault(key, (material, [], [], [], []))
             entry[1].append((tri[faces] - centres[inst.room_id]).reshape(-1, 3).astype(np.float32))
             entry[2].append(np.repeat(normal[faces], 3, axis=0).astype(np.float32))
@@ -196,7 +217,8 @@ def house_batches(house: "House") -> list["Batch"]:
                 entry[4].append(inst.uv[inst.faces[faces]].reshape(-1, 2).astype(np.float32))
     return [
         Batch(key[0], centres[key[0]], np.concatenate(p), np.concatenate(n),
-              np.concatenate(c).astype(np.float32) if c else None, np.concatenate(uv) if uv else None, material)
+              np.concatenate(c).astype(np.float32) if c else None, np.concatenate(uv) if uv else None, material,
+              key[5])
         for key, (material, p, n, c, uv) in parts.items()
     ]
 
@@ -225,10 +247,12 @@ _SHADER_PATCHES = (
      "    vec3 n = normalize(get_normal());\n    if (!gl_FrontFacing) n = -n;\n"),
     ("        float dist = length(position - frag_position);\n",
      "        float dist = max(length(position - frag_position), LIGHT_MIN_DISTANCE);\n"),
+    ("        attenuation = attenuation * attenuation * spot_lights[i].intensity;\n",
+     "        attenuation = cd * step(0.0, cd * las + lao) * spot_lights[i].intensity;\n"),
+    ("    color.xyz += emissive * material.emissive_factor;\n",
+     "    color.xyz += emissive;\n"),
     ("    frag_color = clamp(vec4(pow(color.xyz, vec3(1.0/2.2)), color.a * base_color.a), 0.0, 1.0);\n",
-     "    vec3 c = clamp(color.xyz, 0.0, 1.0);\n"
-     "    vec3 srgb = mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));\n"
-     "    frag_color = vec4(srgb, 1.0);\n"),
+     "    frag_color = vec4(max(color.xyz, vec3(0.0)), 1.0);\n"),
 )
 
 
@@ -317,14 +341,29 @@ def _gl() -> SimpleNamespace:
             return [counts[0], counts[1] if spot_shadows else MAX_LIGHTS, MAX_LIGHTS]
 
         def _configure_main_framebuffer(self):
+            # linear HDR radiance needs a float colour buffer (pyrender's is 8-bit RGBA)
             fresh = self._main_fb_dims != (self.viewport_width, self.viewport_height)
             super()._configure_main_framebuffer()
-            if fresh and self.samples != 4:
-                for buffer, fmt in ((self._main_cb_ms, GL.GL_RGBA), (self._main_db_ms, GL.GL_DEPTH_COMPONENT24)):
+            if fresh:
+                W, H = self.viewport_width, self.viewport_height
+                GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._main_cb)
+                GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, W, H)
+                for buffer, fmt in ((self._main_cb_ms, GL.GL_RGBA32F), (self._main_db_ms, GL.GL_DEPTH_COMPONENT24)):
                     GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, buffer)
-                    GL.glRenderbufferStorageMultisample(
-                        GL.GL_RENDERBUFFER, self.samples, fmt, self.viewport_width, self.viewport_height
-                    )
+                    GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, self.samples, fmt, W, H)
+
+        def _read_main_framebuffer(self, scene, flags):
+            # colour only (pyrender also reads and converts the depth buffer every frame):
+            # (H, W, 4) float32, linear radiance and alpha 1 where a surface was drawn
+            if flags & pyrender.RenderFlags.DEPTH_ONLY:
+                return super()._read_main_framebuffer(scene, flags)
+            W, H = self._main_fb_dims
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
+            GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
+            GL.glBlitFramebuffer(0, 0, W, H, 0, 0, W, H, GL.GL_COLOR_BUFFER_BIT, GL.GL_NEAREST)
+            GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
+            data = GL.glReadPixels(0, 0, W, H, GL.GL_RGBA, GL.GL_FLOAT)
+            return np.frombuffer(data, dtype=np.float32).reshape(H, W, 4)[::-1], None
 
     class ShaderCache(pyrender.shader_program.ShaderProgramCache):
         """pyrender's shader cache, with sceneforge's mesh.frag (an absolute path) for pyrender's."""
@@ -353,6 +392,8 @@ def _gl() -> SimpleNamespace:
 
         #: the light nodes of each room's mesh node (by node name), in name order
         room_lights: dict
+        #: the ambient light (radiance per unit of base colour) of each room's mesh node
+        room_ambient: dict
 
     class RoomLights:
         """The scene as pyrender's lighting code sees it for one room's mesh node: only the
@@ -365,8 +406,9 @@ def _gl() -> SimpleNamespace:
             self.point_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.PointLight)]
             self.spot_light_nodes = [n for n in self.light_nodes if isinstance(n.light, pyrender.SpotLight)]
             self.directional_light_nodes = []
+            self.ambient_light = scene.room_ambient.get(node.name, scene.ambient_light)
 
-        def __getattr__(self, name):  # ambient_light, get_pose, main_camera_node, centroid, scale
+        def __getattr__(self, name):  # get_pose, main_camera_node, centroid, scale
             return getattr(self._scene, name)
 
     class IntrinsicsCamera(pyrender.IntrinsicsCamera):
@@ -489,12 +531,20 @@ class Renderer:
     # -- public API ---------------------------------------------------------------------
 
     def render(self, house: "House", camera: "Camera") -> np.ndarray:
-        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``."""
+        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`~.tonemap.tonemap`
+        of :meth:`render_linear`)."""
+        radiance, seen = self.render_linear(house, camera)
+        c = self.config
+        return tonemap(radiance, seen, exposure=c.exposure, tone=c.tone, background=c.background)
+
+    def render_linear(self, house: "House", camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
+        """(H, W, 3) float32 linear radiance (cd/m²) of the view and the (H, W) bool mask of
+        the pixels that see a surface."""
         flags = self._prepare(house, camera)
         if self.config.shadows:
             flags |= _gl().pyrender.RenderFlags.SHADOWS_SPOT
-        color, _ = self._gl.render(self._scene, flags)
-        return np.array(color, dtype=np.uint8)
+        rgba, _ = self._gl.render(self._scene, flags)
+        return rgba[..., :3], rgba[..., 3] > 0
 
     def depth(self, house: "House", camera: "Camera") -> np.ndarray:
         """(H, W) float32 planar depth (camera z, metres) of the z-buffer; NaN where nothing.
@@ -558,11 +608,13 @@ class Renderer:
             self._gl._update_context(pyrender.Scene(), pyrender.RenderFlags.NONE)
         self._scene = self._house = None
         self._gl._lit.clear()
-        ambient = float(self.config.ambient)
-        scene = gl.Scene(bg_color=(*self.config.background, 1.0), ambient_light=(ambient,) * 3)
+        config = self.config
+        lights = [] if config.flat else house_lights(house, config)
+        emission = {light.instance: light.radiance for light in lights if light.source == "window"}
+        scene = gl.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(float(config.ambient),) * 3)
         textures: dict[tuple, object] = {}
         rooms: dict[str | None, tuple[np.ndarray, list]] = {}
-        for batch in house_batches(house):
+        for batch in _merge_plain(house_batches(house, emission)):
             material = batch.material
             texture = None
             if material.texture is not None:
@@ -576,7 +628,7 @@ class Renderer:
                 texture = textures[key]
             look = pyrender.MetallicRoughnessMaterial(
                 baseColorFactor=(*(float(c) for c in material.base_color[:3]), 1.0), baseColorTexture=texture,
-                metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True)
+                metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True, emissiveFactor=(batch.emission,) * 3)
             primitive = pyrender.Primitive(positions=batch.positions, normals=batch.normals, color_0=batch.colors,
                                            texcoord_0=batch.uv, material=look)
             rooms.setdefault(batch.room, (batch.origin, []))[1].append(primitive)
@@ -585,15 +637,46 @@ class Renderer:
             mesh_of_room[room] = f"room{k:06d}"
             scene.add(pyrender.Mesh(primitives=primitives), name=mesh_of_room[room], pose=_translation(origin))
         scene.room_lights = {name: [] for name in mesh_of_room.values()}
-        for k, light in enumerate(house_lights(house, self.config)):
+        for k, light in enumerate(lights):
             node, pose = _pyrender_light(pyrender, light)
             if light.room in mesh_of_room:
                 scene.room_lights[mesh_of_room[light.room]].append(scene.add(node, name=f"light{k:06d}", pose=pose))
+        # pyrender's ambient term is base colour × ambient_light, a Lambertian surface's
+        # radiance under irradiance E is base colour × E / π
+        scene.room_ambient = {} if config.flat else {
+            mesh_of_room[room]: np.full(3, e / np.pi) for room, e in room_ambient(house, config, lights).items()
+            if room in mesh_of_room}
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
         # shadow maps frame the scene's bounds; pyrender's own computation uses np.infty,
         # which NumPy 2 removed
         scene._bounds = house.bounds()
         self._scene, self._house = scene, house
+
+
+def _merge_plain(batches: list[Batch]) -> list[Batch]:
+    """The batches to draw: per room, every batch without a texture or emission merged into
+    one, its base colours moved into the vertex colours (the shader multiplies the two in
+    float32, as this does); the others as they are. Each draw costs pyrender a few dozen
+    Python calls per frame, and a room of one material per object has dozens of batches."""
+    from dataclasses import replace
+
+    out, plain = [], {}
+    for batch in batches:
+        if batch.material.texture is None and batch.emission == 0:
+            plain.setdefault(batch.room, []).append(batch)
+        else:
+            out.append(batch)
+    merged = []
+    for room, group in plain.items():
+        colours = []
+        for b in group:
+            base = np.asarray(b.material.base_color, dtype=np.float32)
+            rgba = b.colors if b.colors is not None else np.ones((len(b.positions), 4), np.float32)
+            colours.append(rgba * np.array([*base[:3], 1.0], np.float32))
+        white = replace(group[0].material, base_color=(1.0, 1.0, 1.0, 1.0))
+        merged.append(Batch(room, group[0].origin, np.concatenate([b.positions for b in group]),
+                            np.concatenate([b.normals for b in group]), np.concatenate(colours), None, white))
+    return merged + out
 
 
 #: OpenGL's wrap modes of :data:`sceneforge.houses.model.WRAPS`
@@ -609,12 +692,10 @@ def _translation(t) -> np.ndarray:
 def _pyrender_light(pyrender, light: Light):
     """(pyrender light, pose) of a :class:`Light`: pyrender's light falls off as
     ``intensity / d²`` and its diffuse term is ``base × (1 - 0.04) / π`` of it, hence the
-    scale; a spot light points along its pose's -z."""
+    scale; a spot light points along its pose's -z (the patched shader: cos θ inside its cone)."""
     intensity = light.intensity / _DIFFUSE
     if light.kind == "point":
         return pyrender.PointLight(color=np.ones(3), intensity=intensity), _translation(light.position)
-    from .lights import WINDOW_CONE
-
     z = -np.asarray(light.direction, dtype=np.float64)
     x = np.cross([0.0, 1.0, 0.0], z)
     x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])

@@ -12,13 +12,14 @@ from pathlib import Path
 import numpy as np
 
 from ..houses.model import House
+from ..render.tonemap import linear_to_srgb
 
 
 def write_ply(path: Path, house: House, names: list[str]) -> None:
     """Write ``house`` as a binary little-endian PLY, instance ``k`` named ``names[k]``.
 
     Vertices are float64 (exact), uv float32 (only when every instance has uv), colours
-    each face's material's base colour rounded to bytes.
+    each face's material's base colour sRGB-encoded and rounded to bytes (alpha as it is).
     """
     with_uv = bool(house.instances) and all(i.uv is not None for i in house.instances)
     vertex_fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
@@ -34,7 +35,8 @@ def write_ply(path: Path, house: House, names: list[str]) -> None:
         vertex_blocks.append(block)
         faces = np.zeros(len(inst.faces), face_dtype)
         faces["n"], faces["v"], faces["instance"] = 3, inst.faces + offset, inst.id
-        palette = np.clip(np.round(np.array([m.base_color for m in inst.materials]) * 255), 0, 255)
+        linear = np.array([m.base_color for m in inst.materials], dtype=np.float64).reshape(-1, 4)
+        palette = np.clip(np.round(np.column_stack([linear_to_srgb(linear[:, :3]), linear[:, 3]]) * 255), 0, 255)
         rgba = palette[inst.face_materials()]
         for k, channel in enumerate(("red", "green", "blue", "alpha")):
             faces[channel] = rgba[:, k]

@@ -6,7 +6,8 @@ increasing order; without such a property, one mesh. Names come from ``comment i
 <value> <name>`` header lines, else the file stem (with ``_<value>`` when there are
 several). Polygons are fanned; per-face colours give face groups (one material per
 distinct colour, in order of first use), per-vertex colours the mesh's vertex colours (on a
-white material); both are read as linear RGBA, bytes / 255. ``s``/``t`` (or ``u``/``v``)
+white material); both are sRGB-encoded (what every PLY writer stores, bytes or floats in
+[0, 1]) and decoded to linear RGB, alpha kept as it is (bytes / 255). ``s``/``t`` (or ``u``/``v``)
 give the uv, a ``comment TextureFile`` the texture.
 """
 
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...render.tonemap import srgb_to_linear
 from ..model import Material
 from .meshio import Mesh, MeshFileError, Warn, compact, fan, find_image, ignore
 
@@ -242,13 +244,15 @@ def read_ply(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
 
 
 def _ply_colors(face: dict, vertex: dict) -> tuple[np.ndarray | None, bool]:
-    """RGBA in [0, 1], (faces, 4) or (vertices, 4), and whether they are per face."""
+    """Linear RGBA in [0, 1] (RGB decoded from sRGB), (faces, 4) or (vertices, 4), and
+    whether they are per face."""
     for element, per_face in ((face, True), (vertex, False)):
         if all(c in element for c in ("red", "green", "blue")):
             is_byte = element["red"].dtype.kind in "iu"
             full = 255.0 if is_byte else 1.0
             alpha = element.get("alpha", np.full(len(element["red"]), full))
             rgb = [element[c] for c in ("red", "green", "blue")]
-            rgba = np.column_stack([*rgb, alpha]).astype(np.float64)
-            return rgba / full, per_face
+            rgba = np.column_stack([*rgb, alpha]).astype(np.float64) / full
+            rgba[:, :3] = srgb_to_linear(np.clip(rgba[:, :3], 0.0, 1.0))
+            return rgba, per_face
     return None, False
