@@ -46,6 +46,15 @@ from .view import ViewConfig
 #: Fields of a sub-config that a config file does not set (they follow another field).
 _DERIVED: dict[type, frozenset[str]] = {CameraSamplerConfig: frozenset({"width", "height"})}
 
+#: Keys earlier versions of the render config had, by dotted name, and what replaced them.
+#: A config a store recorded drops them (its arrays were made already); a config file a user
+#: gives that still sets one is an error saying what to set instead.
+RETIRED: dict[str, str] = {
+    "rgb.lighting.light": "lights are physical now: set rgb.lighting.lamp_power (lumens), "
+                          "and rgb.lighting.exposure for a fixed exposure",
+    "rgb.lighting.window_light": "windows are sky panels now: set rgb.lighting.sky_luminance (cd/m²)",
+}
+
 
 @dataclass(frozen=True)
 class RGBConfig:
@@ -134,12 +143,32 @@ class DatasetConfig:
         return dataclass_to_dict(self)
 
     @classmethod
-    def from_dict(cls, data: dict, *, what: str = "config") -> "DatasetConfig":
-        """Validate ``data`` against the config schema and build the config.
+    def from_dict(cls, data: dict, *, what: str = "config", recorded: bool = False) -> "DatasetConfig":
+        """Validate ``data`` against the config schema and build the config. ``recorded``:
+        ``data`` is the config a store was written with, whose :data:`RETIRED` keys are dropped.
 
         Raises :class:`SceneforgeError` naming ``what`` and the problem.
         """
-        return build_config(cls, data, schema="config", what=what)
+        return build_config(cls, _retire(data, what, drop=recorded), schema="config", what=what)
+
+
+def _retire(data: dict, what: str, *, drop: bool) -> dict:
+    """``data`` without its :data:`RETIRED` keys (``drop``), or a SceneforgeError naming the first."""
+    out = dict(data)
+    for dotted, instead in RETIRED.items():
+        *parents, key = dotted.split(".")
+        node, path = out, []
+        for parent in parents:
+            if not isinstance(node.get(parent), dict):
+                break
+            node[parent] = dict(node[parent])
+            node, path = node[parent], [*path, parent]
+        else:
+            if key in node:
+                if not drop:
+                    raise SceneforgeError(f"{what}: '{dotted}' was removed: {instead}")
+                del node[key]
+    return out
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> DatasetConfig:

@@ -720,7 +720,7 @@ class SceneStore:
         """The resolved config the store was written with."""
         from .config import DatasetConfig
 
-        return DatasetConfig.from_dict(self.attrs["config"], what=f"{self.group.store} config")
+        return DatasetConfig.from_dict(self.attrs["config"], what=f"{self.group.store} config", recorded=True)
 
     def array(self, name: str) -> "zarr.Array":
         """The zarr array ``name`` (e.g. ``depth`` or ``mesh/objects/vertices``), for lazy slicing."""
@@ -889,7 +889,7 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
                               "command again to finish it")
         return check
     try:
-        config = DatasetConfig.from_dict(attrs["config"], what="config attribute")
+        config = DatasetConfig.from_dict(attrs["config"], what="config attribute", recorded=True)
     except SceneforgeError as e:
         check.problems.append(str(e))
         return check

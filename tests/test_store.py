@@ -198,6 +198,22 @@ def test_compression_level_range_follows_the_codec(store, message):
     with pytest.raises(SceneforgeError, match=f"config: {message}"):
         load_config(None, {"store": store})
 
+
+def test_a_store_recorded_with_retired_lighting_keys_still_opens(store_copy):
+    import zarr
+
+    group = zarr.open_group(str(store_copy), mode="r+")
+    config = group.attrs["config"]
+    config["rgb"]["lighting"] |= {"light": 1.0, "window_light": 0.5}  # as the older renderer saved them
+    group.attrs["config"] = config
+    assert validate_store(str(store_copy)) == []
+    assert open_store(str(store_copy)).config == load_config(None, SMALL)
+
+
+def test_a_config_file_setting_a_retired_key_says_what_replaced_it():
+    with pytest.raises(SceneforgeError, match=r"config: 'rgb.lighting.light' was removed: .*lamp_power"):
+        load_config(None, {"rgb": {"lighting": {"light": 2.0}}})
+
 # ----------------------------------------------------------------------------- checking
 
 

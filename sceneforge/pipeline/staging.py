@@ -149,7 +149,7 @@ def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list
     from .plan import Plan
 
     store = open_store(writer.url, writer.storage_options or None)
-    config = DatasetConfig.from_dict(attrs["config"], what=f"{writer.url} config")
+    config = DatasetConfig.from_dict(attrs["config"], what=f"{writer.url} config", recorded=True)
     house_failures = {f["house"]: f for f in attrs["failures"] if f["view"] is None}
     camera_id, K, pose = (np.asarray(store.array(name)[:]) for name in ("camera_id", "K", "cam_to_world"))
     records = []
