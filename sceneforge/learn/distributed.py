@@ -7,7 +7,7 @@ of the command; each reads its place from the environment torchrun sets (``RANK`
 copy of the nets on its share of every batch (``batch_size / N`` views,
 :class:`~sceneforge.learn.trainer.EpochSampler`); the gradients are averaged, so every step
 is one step on the whole batch. Rank 0 alone writes the run folder (split, config,
-checkpoints, metrics, logs) and validates.
+checkpoints, metrics, logs) and validates (the others wait, up to :data:`TIMEOUT`).
 
 BatchNorm in training mode normalises by the statistics of its batch: per process, a share
 of the batch. With ``sync_batchnorm`` (the default) they are those of the whole batch, as
@@ -20,10 +20,16 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from datetime import timedelta
 
 import torch
 import torch.distributed as dist
 from torch import Tensor, nn
+
+#: how long a process waits for the others at a collective: rank 0 validates alone after
+#: every epoch while the others wait for the next step (the default, 10 min with NCCL, is
+#: shorter than a validation of the paper's data may take)
+TIMEOUT = timedelta(hours=2)
 
 
 @dataclass(frozen=True)
@@ -67,7 +73,7 @@ class Distributed:
         if device.type == "cuda":
             torch.cuda.set_device(device)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo", rank=self.rank,
-                                world_size=self.world_size)
+                                world_size=self.world_size, timeout=TIMEOUT)
         return True
 
     def stop(self) -> None:
