@@ -109,8 +109,7 @@ class TrainConfig:
     stage: Stage
     #: stores to train on; their views are split by house
     stores: tuple[str, ...]
-    #: views per optimiser step (paper: 24); a torchrun of N processes gives each
-    #: batch_size / N of them
+    #: views per batch (paper: 24)
     batch_size: int = 24
     #: Adam learning rate (paper: 5e-4)
     lr: float = 5e-4

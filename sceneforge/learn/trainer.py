@@ -79,17 +79,6 @@ def default_workers(processes: int = 1) -> int:
     return max(1, min(MAX_DEFAULT_WORKERS, cores // max(processes, 1)))
 
 
-def _zarr_survives_fork() -> bool:
-    """Whether zarr drops its IO thread's event loop in a forked child (zarr registers
-    ``reset_resources_after_fork`` since 3.0.x; before, a forked worker waits for ever on the
-    parent's loop, whose thread it does not have)."""
-    try:
-        from zarr.core import sync
-    except ImportError:
-        return False
-    return hasattr(sync, "reset_resources_after_fork")
-
-
 def worker_context(method: str | None = None) -> multiprocessing.context.BaseContext:
     """How DataLoader workers start (``method``: None = the default).
 
@@ -102,7 +91,9 @@ def worker_context(method: str | None = None) -> multiprocessing.context.BaseCon
     """
     methods = multiprocessing.get_all_start_methods()
     if method is None:
-        method = "fork" if "fork" in methods and _zarr_survives_fork() else "forkserver"
+        from sceneforge.store import reads_survive_fork
+
+        method = "fork" if "fork" in methods and reads_survive_fork() else "forkserver"
     if method == "forkserver" and method not in methods:
         method = "spawn"
     ctx = multiprocessing.get_context(method)
