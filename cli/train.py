@@ -27,6 +27,8 @@ TRAIN_OPTIONS = (
     ConfigOption("--width", "width", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--bn-momentum", "bn_momentum", type=click.FloatRange(0, 1, min_open=True)),
     ConfigOption("--seed", "seed"),
+    ConfigOption("--amp", "amp"),
+    ConfigOption("--sync-batchnorm", "sync_batchnorm"),
     ConfigOption("--eft-layers", "eft_layers"),
     ConfigOption("--gating", "eft.gating"),
     ConfigOption("--floor-as-zero", "floor_as_zero"),
@@ -71,12 +73,14 @@ def _train_bar(console):
 
 @click.command()
 @config_options(TrainConfig, TRAIN_OPTIONS)
-@click.option("--run", "run_dir", type=click.Path(file_okay=False), default=None,
-              help="Run folder (config, split, checkpoint, metrics, loss curve). [default: runs/STAGE]")
+@click.option("--run", "--run-dir", "run_dir", type=click.Path(file_okay=False), default=None,
+              help="Run folder (config, split, checkpoint, metrics, loss curve); under torchrun write "
+                   "--run-dir (torchrun reads --run as its own --run-path). [default: runs/STAGE]")
 @click.option("--device", default="auto", show_default=True,
               help="auto (the GPU when torch sees one), cpu, cuda, cuda:N (GPU N) or mps.")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="DataLoader worker processes.")
+@click.option("--workers", type=click.IntRange(min=0), default=None,
+              help="DataLoader worker processes per training process (0: read in the training process). "
+                   "[default: the usable CPU cores (shared by the processes of a torchrun), at most 4]")
 @click.option("--resume", is_flag=True, help="Continue the run saved in the run folder.")
 @click.option("--tensorboard/--no-tensorboard", default=True, show_default=True,
               help="Also log to RUN/tensorboard when TensorBoard is installed.")
@@ -92,7 +96,18 @@ def train(config, run_dir, device, workers, resume, tensorboard, wandb):
     and batch size by default. The run folder gets the resolved config (reload it with --config
     RUN/config.json), the house split, a checkpoint (--resume continues from it), the
     metrics as CSV and a loss-curve PNG at the end.
+
+    \b
+    Several GPUs: one process per GPU, started by torchrun, e.g. on 8 GPUs
+      torchrun --standalone --nproc_per_node 8 -m sceneforge train STORES --stage depth --run-dir RUN
+    Each process takes --batch-size / 8 views of every step (the batch size stays the
+    whole step's; it must divide evenly) and averages gradients with the others (NCCL;
+    gloo on the CPU); BatchNorm uses the whole batch's statistics (--no-sync-batchnorm:
+    each process's own). Rank 0 alone writes the run folder; --resume works the same.
     """
+    import contextlib
+    import os
+
     from rich.console import Console
 
     from sceneforge.learn.train import train as run_training
@@ -101,10 +116,11 @@ def train(config, run_dir, device, workers, resume, tensorboard, wandb):
     check_output(run, "run folder", kind="store")
     check_device(device)
     config = config.with_frozen_runs(RUNS)
-    console = Console(highlight=False, stderr=True)
-    with _train_bar(console) as bar:
+    main = int(os.environ.get("RANK", 0)) == 0  # under torchrun, rank 0 alone reports
+    console = Console(highlight=False, stderr=True, quiet=not main)
+    with _train_bar(console) if main else contextlib.nullcontext() as bar:
         result = run_training(config, run, device=device, workers=workers, resume=resume,
-                              tensorboard=tensorboard, wandb=wandb, progress=_TrainBar(bar))
+                              tensorboard=tensorboard, wandb=wandb, progress=_TrainBar(bar) if main else None)
     console.print(f"{result.run}: {plural(result.steps, 'step')}, {plural(result.epochs, 'epoch')} in "
                   f"{result.seconds:.1f} s "
                   f"({result.images_per_s:.1f} images/s); train loss {result.train_loss:.4g}, "

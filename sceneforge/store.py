@@ -778,6 +778,17 @@ def _arrays_of(group: "zarr.Group") -> Iterator[tuple[str, "zarr.Array"]]:
             yield path, node
 
 
+def reads_survive_fork() -> bool:
+    """Whether a process forked from one that has read a store can read stores itself: zarr
+    drops its IO thread's event loop in a forked child (``reset_resources_after_fork``, zarr
+    3.0.x on); before, the child waits for ever on the parent's loop, whose thread it lacks."""
+    try:
+        from zarr.core import sync
+    except ImportError:
+        return False
+    return hasattr(sync, "reset_resources_after_fork")
+
+
 def open_store(path: str, storage_options: dict | None = None, *, allow_incomplete: bool = False) -> SceneStore:
     """Open the store at ``path`` (a local path or an fsspec URL) for reading.
 

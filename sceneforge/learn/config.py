@@ -30,6 +30,10 @@ SegEmpty = Literal["ignore", "background"]
 FloorRemoval = Literal["segmentation", "height"]
 #: what the overhead stage caches of its input (:mod:`sceneforge.learn.cache`)
 FeatureCache = Literal["float16", "float32", "off"]
+#: mixed precision of a training run's forward pass: "auto" (bf16 on a GPU that supports it,
+#: else off), "bf16", "fp16" (with a gradient scaler) or "off" (float32 throughout)
+Amp = Literal["auto", "bf16", "fp16", "off"]
+AMPS: tuple[str, ...] = typing.get_args(Amp)
 #: the views a prediction or an evaluation takes: the houses of one split, or every view
 SplitName = Literal["test", "val", "train", "all"]
 
@@ -97,8 +101,10 @@ class SplitConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Everything that decides what a training run learns (not how fast: the device and
-    the number of data workers are options of :func:`~sceneforge.learn.train.train`)."""
+    """Everything that decides what a training run learns (not how fast: the device, the
+    number of data workers and the processes of a torchrun are options of
+    :func:`~sceneforge.learn.train.train` and of its environment). ``batch_size`` is the
+    whole batch of a step, shared among the processes of a distributed run."""
 
     #: the stage to train: the frontal depth or segmentation net, then the overhead nets
     #: (on the frozen frontal nets) or the virtual camera proposal (on the frozen depth net)
@@ -143,6 +149,13 @@ class TrainConfig:
     log_every: int = 10
     #: save the checkpoint every this many steps (and at the end of every epoch)
     checkpoint_every: int = 500
+    #: mixed precision of the forward pass: "auto" (bf16 on a CUDA GPU that supports it,
+    #: else off), "bf16", "fp16" (with a gradient scaler) or "off"; the run saves what
+    #: "auto" resolved to, so a resumed run keeps it
+    amp: Amp = "auto"
+    #: with several processes (torchrun), BatchNorm statistics over the whole batch of all
+    #: of them (as one process with the whole batch computes them); off: each process's own
+    sync_batchnorm: bool = True
     #: the epipolar feature transform (its resolution is the stores' overhead resolution)
     eft: EFTConfig = field(default_factory=EFTConfig)
     #: loss weights
@@ -153,6 +166,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.stage not in STAGES:
             raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {self.stage!r}")
+        if self.amp not in AMPS:
+            raise ValueError(f"amp must be one of {', '.join(AMPS)}, got {self.amp!r}")
         if self.eft_layers not in EFT_LAYERS:
             raise ValueError(f"eft_layers must be one of {EFT_LAYERS}, got {self.eft_layers!r}")
         if not self.stores:

@@ -23,6 +23,11 @@ A run lives in one folder::
 
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
 checkpoint with the same data order (a seeded permutation per epoch).
+
+Fast by default: DataLoader workers (:func:`.trainer.default_workers`), bf16 autocast,
+channels-last and ``cudnn.benchmark`` on a GPU (``config.amp``); under ``torchrun`` one
+process per GPU, each on its share of every batch (:mod:`.distributed`), rank 0 alone
+writing the run folder.
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ from ..errors import MissingDependencyError, SceneforgeError
 from .cache import cached_datasets
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
 from .dataset import StoreDataset, ViewIndex, index_stores
+from .distributed import Distributed
 from .eft import EpipolarFeatureTransformer
 from .split import SPLITS, default_split_file, fixed_split
 from .stages import Stage, get_stage, overhead_input  # noqa: F401  (overhead_input: predict reads it here)
@@ -53,7 +59,9 @@ from .trainer import (
     Position,
     Trainer,
     TrainProgress,
+    default_workers,
     read_metrics,
+    resolve_amp,
 )
 
 # ------------------------------------------------------------------------- networks
@@ -182,9 +190,11 @@ def _absolute_runs(config: TrainConfig) -> TrainConfig:
                    split=replace(config.split, file=str(split_file.resolve())))
 
 
-def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
+def _prepare_run(config: TrainConfig, run: Path, resume: bool, device: torch.device) -> TrainConfig:
     """Check the run folder; with ``resume``, the config must be the saved one (epochs and
-    max_steps may change) and that is what the run continues with."""
+    max_steps may change) and that is what the run continues with. ``amp`` is resolved on
+    ``device`` (what ``auto`` means there) before it is saved or compared."""
+    config = replace(config, amp=resolve_amp(config.amp, device))
     has_checkpoint = (run / CHECKPOINT).exists()
     if not resume:
         if has_checkpoint:
@@ -194,6 +204,7 @@ def _prepare_run(config: TrainConfig, run: Path, resume: bool) -> TrainConfig:
     if not has_checkpoint:
         raise SceneforgeError(f"{run}: nothing to resume (no {CHECKPOINT})")
     saved = read_config(run)
+    saved = replace(saved, amp=resolve_amp(saved.amp, device))  # runs saved before amp was a setting
     ours = replace(config, epochs=saved.epochs, max_steps=saved.max_steps)
     if ours != saved:
         diff = [k for k, v in saved.to_dict().items() if ours.to_dict()[k] != v]
@@ -240,7 +251,7 @@ def train(
     run: str | Path,
     *,
     device: str = "auto",
-    workers: int = 0,
+    workers: int | None = None,
     resume: bool = False,
     tensorboard: bool = True,
     wandb: bool = False,
@@ -248,41 +259,72 @@ def train(
 ) -> TrainResult:
     """Train ``config.stage`` into the folder ``run`` (layout: module docstring).
 
-    device  : ``auto`` (the GPU when present), ``cpu``, ``cuda``, ``cuda:1``, ...
-    workers : DataLoader worker processes (0: read in this process)
+    device  : ``auto`` (the GPU when present), ``cpu``, ``cuda``, ``cuda:1``, ...; under
+              torchrun, a GPU device means GPU ``LOCAL_RANK``
+    workers : DataLoader worker processes (0: read in this process; None:
+              :func:`~.trainer.default_workers`)
     resume  : continue the run saved in ``run`` (same config; ``epochs``/``max_steps`` may grow)
     wandb   : also log to Weights & Biases (project ``sceneforge``, the run folder's name);
               needs the ``wandb`` package
+    Under torchrun (``WORLD_SIZE`` > 1 in the environment, :mod:`.distributed`) every
+    process calls it; rank 0 alone writes the run folder and reports progress, and every
+    process returns the same :class:`TrainResult`.
     Raises :class:`SceneforgeError` for unusable stores, a missing frozen run, or a run
     folder that already holds a run (without ``resume``).
     """
     if importlib.util.find_spec("matplotlib") is None:
         raise MissingDependencyError("matplotlib", "the loss curve of a training run",
                                      "pip install sceneforge[learn]")
-    run = Path(run)
-    config = _prepare_run(_absolute_runs(config), run, resume)
-    dev = resolve_device(device)
+    dist = Distributed.from_env()
+    dev = dist.device(resolve_device(device))
+    started = dist.start(dev)
+    try:
+        return _train(config, Path(run), dev, dist, default_workers(dist.local_world_size) if workers is None
+                      else workers, resume, tensorboard, wandb, progress if dist.is_main else None)
+    finally:
+        if started:
+            dist.stop()
+
+
+def _train(config: TrainConfig, run: Path, dev: torch.device, dist: Distributed, workers: int, resume: bool,
+           tensorboard: bool, wandb: bool, progress: TrainProgress | None) -> TrainResult:
+    config = _prepare_run(_absolute_runs(config), run, resume, dev)
+    if dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # the images are all of one size: pick the fastest kernels
     frontal = frontal_nets(config, dev)
-    index, subsets, split_record = _split(config)
-    _write_run_files(run, config, split_record)
+    # rank 0 draws (and saves) the split on first use, then the others read it
+    if dist.is_main:
+        index, subsets, split_record = _split(config)
+        _write_run_files(run, config, split_record)
+    dist.barrier()
+    if not dist.is_main:
+        index, subsets, split_record = _split(config)
 
     stage = get_stage(config.stage)
     # the overhead nets are supervised at the stores' overhead resolution
     eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"]) if stage.uses_eft else None
-    trainer = Trainer(config, frontal, eft, dev)
+    trainer = Trainer(config, frontal, eft, dev, dist)
     checkpoint = Checkpoint(run / CHECKPOINT)
     start = checkpoint.restore(trainer) if resume else Position()
     train_set, val_set = _datasets(stage, config, subsets)
     if stage.uses_eft:
         train_set, val_set = cached_datasets(config, run, frontal, eft, dev, stage.targets, train_set, val_set)
     total = _total_steps(config, len(train_set))
-    log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
-                     {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
+    log = None
+    if dist.is_main:
+        log = MetricsLog(run, stage.loss_parts, start.step if resume else None, tensorboard, stage.val_metrics,
+                         {"project": "sceneforge", "name": run.name, "config": config.to_dict()} if wandb else None)
     if progress:
         progress.start(total, start.step)
     loop = EpochLoop(trainer, train_set, val_set, total, log, checkpoint, workers, progress, Checkpoint(run / BEST))
-    end = loop.run(start)
-    log.close()
-    plot_loss_curve(run)
+    try:
+        end = loop.run(start)
+    finally:
+        loop.close()
+        if log is not None:
+            log.close()
+    if dist.is_main:
+        plot_loss_curve(run)
+    dist.barrier()  # the others return once the run folder is whole
     return TrainResult(run, end.step, end.epoch, loop.train_loss, loop.val_loss, loop.images_per_s,
                        time.perf_counter() - loop.started)

@@ -1,21 +1,31 @@
 """The training loop and its pieces, each on its own (used by :func:`sceneforge.learn.train.train`).
 
 - :class:`Trainer`     — a stage's nets, their Adam optimiser and the frozen nets they read:
-  one optimiser step on a batch, the mean loss over a dataset (validation)
+  one optimiser step on a batch (in the run's mixed precision, :func:`resolve_amp`; a
+  DistributedDataParallel copy of the nets with several processes, :mod:`.distributed`),
+  the mean loss over a dataset (validation)
+- :func:`make_loader`  — the DataLoader of a dataset: worker processes that open the
+  stores themselves (forked where zarr survives a fork, else from a fork server), kept
+  for the whole run
 - :class:`Checkpoint`  — ``checkpoint.pt``: weights, optimiser and :class:`Position`,
   replaced atomically, restored on resume; ``best.pt`` the same at the lowest validation loss
 - :class:`MetricsLog`  — ``metrics.csv``, TensorBoard scalars and (optional) Weights & Biases
 - :class:`EpochLoop`   — the schedule: epochs of steps in a seeded order, a train row every
-  ``log_every`` steps (images/s of the training steps alone, validation time left out), a
-  checkpoint every ``checkpoint_every`` steps and at the end of every epoch, validation
-  (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch
+  ``log_every`` steps (images/s of the training steps alone, validation and checkpoint
+  writing left out), a checkpoint every ``checkpoint_every`` steps and at the end of every
+  epoch, validation
+  (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch; with several
+  processes, each steps on its share of every batch (:class:`EpochSampler`) and rank 0
+  alone writes and validates
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import math
+import multiprocessing
 import os
 import time
 from dataclasses import dataclass, replace
@@ -28,6 +38,7 @@ from torch import Tensor
 from ..errors import SceneforgeError
 from .config import TrainConfig
 from .dataset import StoreDataset
+from .distributed import Distributed, sync_batchnorm
 from .eft import EpipolarFeatureTransformer
 from .metrics import Metrics
 from .stages import Nets, get_stage
@@ -54,34 +65,151 @@ class Position:
     batch: int = 0
 
 
-def _loader(dataset, batch_size: int, sampler, workers: int, device: torch.device):
-    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
-                                       pin_memory=device.type == "cuda", persistent_workers=False)
+#: the most DataLoader worker processes a run starts by default (per training process)
+MAX_DEFAULT_WORKERS = 4
+#: modules the fork server imports once, so that each worker it forks starts at once
+_WORKER_PRELOAD = ["torch", "sceneforge.learn.dataset"]
+
+
+def default_workers(processes: int = 1) -> int:
+    """DataLoader workers of a training process when none are asked for: the CPU cores this
+    process may use, shared among the ``processes`` of a torchrun on this machine, at most
+    :data:`MAX_DEFAULT_WORKERS` and at least 1."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(MAX_DEFAULT_WORKERS, cores // max(processes, 1)))
+
+
+def worker_context(method: str | None = None) -> multiprocessing.context.BaseContext:
+    """How DataLoader workers start (``method``: None = the default).
+
+    Every worker opens the stores itself on first use (:class:`~.dataset.StoreDataset`
+    pickles no zarr handle), so a forked worker shares no zarr state with the training
+    process. Forking (fast, and scripts need no ``__main__`` guard) is the default where
+    zarr resets its background event loop in a forked child; elsewhere workers come from a
+    fork server, a fresh process that has imported torch and the dataset module and
+    nothing else (as does ``method="forkserver"``), or are spawned where there is none.
+    """
+    methods = multiprocessing.get_all_start_methods()
+    if method is None:
+        from sceneforge.store import reads_survive_fork
+
+        method = "fork" if "fork" in methods and reads_survive_fork() else "forkserver"
+    if method == "forkserver" and method not in methods:
+        method = "spawn"
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload(_WORKER_PRELOAD)
+    return ctx
+
+
+def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int = 1, batch_sampler=None,
+                timeout: float = 0, start: str | None = None) -> torch.utils.data.DataLoader:
+    """A DataLoader of ``dataset`` in batches of ``batch_size`` in order, or those of
+    ``batch_sampler``. With ``workers`` > 0 they are :func:`worker_context` processes
+    (``start``: its method) kept alive between epochs (persistent); on CUDA the batches
+    come in pinned memory.
+
+    timeout : seconds to wait for a worker's batch before raising (0: for ever)
+    """
+    kw = {"num_workers": workers, "pin_memory": device.type == "cuda"}
+    if workers > 0:
+        kw.update(multiprocessing_context=worker_context(start), persistent_workers=True, timeout=timeout)
+    if batch_sampler is not None:
+        return torch.utils.data.DataLoader(dataset, batch_sampler=batch_sampler, **kw)
+    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, **kw)
+
+
+def resolve_amp(amp: str, device: torch.device) -> str:
+    """The mixed precision ``amp`` (``TrainConfig.amp``) means on ``device``: ``auto`` is
+    ``bf16`` on a CUDA GPU that supports bfloat16 and ``off`` anywhere else."""
+    if amp != "auto":
+        return amp
+    return "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else "off"
+
+
+#: autocast dtypes of the mixed-precision modes
+AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def _channels_last(device: torch.device) -> bool:
+    """Whether images go channels-last (NHWC) on ``device``: on CUDA, where cuDNN's
+    convolutions (and tensor cores under mixed precision) are fastest so."""
+    return device.type == "cuda"
 
 
 def _to(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+    nhwc = _channels_last(device)
+    out = {}
+    for k, v in batch.items():
+        if nhwc and v.dim() == 4 and v.is_floating_point():
+            out[k] = v.to(device, non_blocking=True, memory_format=torch.channels_last)
+        else:
+            out[k] = v.to(device, non_blocking=True)
+    return out
+
+
+def _float(outputs: dict[str, Tensor]) -> dict[str, Tensor]:
+    """The nets' outputs in float32: the losses are computed outside autocast."""
+    return {k: v.float() if torch.is_tensor(v) and v.is_floating_point() else v for k, v in outputs.items()}
 
 
 class Trainer:
     """The nets ``config.stage`` trains (initialised from ``config.seed``), their optimiser,
     and the frozen nets and EFT (None: the stage uses none) they read. Knows no files and
-    no schedule."""
+    no schedule.
+
+    Mixed precision (``config.amp``, :func:`resolve_amp`): the nets' forward pass runs
+    under autocast, the losses in float32; fp16 scales the loss (a GradScaler, its state
+    saved in the checkpoint). On CUDA the nets and images are channels-last.
+    With ``dist`` enabled, the nets train as DistributedDataParallel copies (``train_nets``;
+    ``nets`` are the modules themselves, what checkpoints save), their BatchNorms over the
+    whole batch when ``config.sync_batchnorm``.
+    """
 
     def __init__(self, config: TrainConfig, frontal: Nets, eft: EpipolarFeatureTransformer | None,
-                 device: torch.device):
+                 device: torch.device, dist: Distributed | None = None):
         self.config, self.frontal, self.eft, self.device = config, frontal, eft, device
+        self.dist = dist or Distributed()
         self.stage = get_stage(config.stage)
+        self.amp = resolve_amp(config.amp, device)
+        if self.amp == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+            raise SceneforgeError(f"--amp bf16: {torch.cuda.get_device_name(device)} has no bfloat16; "
+                                  "use --amp fp16 or off")
         torch.manual_seed(config.seed)
         self.nets = self.stage.build(config, frontal)
-        for net in self.nets.values():
-            net.to(device).train()
+        memory = torch.channels_last if _channels_last(device) else torch.preserve_format
+        for name, net in self.nets.items():
+            if self.dist.enabled and config.sync_batchnorm:
+                net = self.nets[name] = sync_batchnorm(net, device)
+            net.to(device, memory_format=memory).train()
+        for net in frontal.values():
+            net.to(memory_format=memory)
         params = [p for net in self.nets.values() for p in net.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=config.lr)
+        self.scaler = torch.amp.GradScaler(device.type, enabled=self.amp == "fp16")
+        self.train_nets = self.nets
+        if self.dist.enabled:
+            from torch.nn.parallel import DistributedDataParallel
+
+            ids = [device.index] if device.type == "cuda" else None
+            self.train_nets = {k: DistributedDataParallel(v, device_ids=ids) for k, v in self.nets.items()}
+
+    def autocast(self):
+        """The context of the nets' forward pass: autocast in the run's precision."""
+        if self.amp == "off":
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=AMP_DTYPES[self.amp])
+
+    def _outputs(self, nets: Nets, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        if self.amp == "off":
+            return self.stage.forward(self.config, nets, self.frontal, self.eft, batch)
+        with self.autocast():
+            outputs = self.stage.forward(self.config, nets, self.frontal, self.eft, batch)
+        return _float(outputs)
 
     def loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         """The stage's loss on a batch (on the device) and its logged parts."""
-        return self.stage.loss(self.config, self.nets, self.frontal, self.eft, batch)
+        return self.stage.objective(self.config, self._outputs(self.train_nets, batch), batch)
 
     def step(self, batch: dict[str, Tensor], number: int) -> dict[str, float]:
         """One optimiser step on a batch; its losses as logged (``loss`` and the parts).
@@ -92,20 +220,24 @@ class Trainer:
         if not torch.isfinite(loss):
             raise SceneforgeError(f"step {number}: the loss is {loss.item()} (diverged); lower --lr")
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimizer.step()
+        self.scaler.scale(loss).backward()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
         return {"loss": loss.item(), **parts}
 
-    def validate(self, dataset: StoreDataset, workers: int = 0) -> dict[str, float]:
+    def validate(self, dataset: StoreDataset, workers: int = 0, loader=None) -> dict[str, float]:
         """Mean loss (``loss``) and the stage's :attr:`~.stages.Stage.val_metrics` over a
-        dataset, nets in eval mode (and back in training mode after)."""
+        dataset (read by ``loader`` when given), nets in eval mode (and back in training
+        mode after)."""
         for net in self.nets.values():
             net.eval()
         total, n, metrics = 0.0, 0, Metrics()
+        if loader is None:
+            loader = make_loader(dataset, self.device, workers, batch_size=self.config.batch_size)
         with torch.no_grad():
-            for batch in _loader(dataset, self.config.batch_size, None, workers, self.device):
+            for batch in loader:
                 batch = _to(batch, self.device)
-                outputs = self.stage.forward(self.config, self.nets, self.frontal, self.eft, batch)
+                outputs = self._outputs(self.nets, batch)
                 loss, _ = self.stage.objective(self.config, outputs, batch)
                 self.stage.measure(self.config, outputs, batch, metrics)
                 total += loss.item() * len(batch["index"])
@@ -130,6 +262,8 @@ class Checkpoint:
         state = {"models": {k: v.state_dict() for k, v in trainer.nets.items()},
                  "optimizer": trainer.optimizer.state_dict(), "step": at.step, "epoch": at.epoch,
                  "batch": at.batch, "config": trainer.config.to_dict()}
+        if trainer.scaler.is_enabled():
+            state["scaler"] = trainer.scaler.state_dict()
         tmp = self.path.with_suffix(".tmp")
         torch.save(state, tmp)
         os.replace(tmp, self.path)
@@ -144,6 +278,8 @@ class Checkpoint:
         for name, net in trainer.nets.items():
             net.load_state_dict(state["models"][name])
         trainer.optimizer.load_state_dict(state["optimizer"])
+        if trainer.scaler.is_enabled() and "scaler" in state:
+            trainer.scaler.load_state_dict(state["scaler"])
         return Position(state["step"], state["epoch"], state["batch"])
 
 
@@ -211,17 +347,35 @@ def read_metrics(path: str | Path) -> list[dict]:
 
 
 class EpochSampler(torch.utils.data.Sampler):
-    """Indices of one epoch: a permutation seeded by (seed, epoch), from batch ``start`` on."""
+    """The batches of an epoch (a batch sampler): a permutation of the ``n`` views seeded
+    by (seed, epoch) cut into batches of ``batch_size``, from batch ``start`` on
+    (:meth:`set_epoch`). Of ``world_size`` processes, rank ``rank`` takes its contiguous
+    share of every batch (``batch_size / world_size`` views); of an epoch's short last
+    batch, near-equal shares, and a process left none repeats one of its views (every
+    process must take the same number of steps)."""
 
-    def __init__(self, n: int, seed: int, epoch: int, start: int, batch_size: int):
-        self.order = torch.randperm(n, generator=torch.Generator().manual_seed(seed * 100003 + epoch))
-        self.order = self.order[start * batch_size:]
+    def __init__(self, n: int, seed: int, batch_size: int, rank: int = 0, world_size: int = 1):
+        if batch_size % world_size:
+            raise SceneforgeError(f"--batch-size {batch_size} is not shared evenly by {world_size} processes: "
+                                  f"use a multiple of {world_size}")
+        self.n, self.seed, self.batch_size, self.rank, self.world_size = n, seed, batch_size, rank, world_size
+        self.set_epoch(0)
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        """Serve epoch ``epoch`` from its batch ``start`` on."""
+        order = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed * 100003 + epoch))
+        self.order = order[start * self.batch_size:]
 
     def __iter__(self):
-        return iter(self.order.tolist())
+        for first in range(0, len(self.order), self.batch_size):
+            batch = self.order[first:first + self.batch_size]
+            share = batch.tensor_split(self.world_size)[self.rank]
+            if not len(share):
+                share = batch[self.rank % len(batch)].reshape(1)
+            yield share.tolist()
 
     def __len__(self) -> int:
-        return len(self.order)
+        return math.ceil(len(self.order) / self.batch_size)
 
 
 class _TrainWindow:
@@ -237,6 +391,14 @@ class _TrainWindow:
             self.sums[key] = self.sums.get(key, 0.0) + value
         self.count += 1
 
+    def pooled(self, dist: Distributed) -> None:
+        """Pool the images and loss sums of every process (each must call it at once)."""
+        keys = sorted(self.sums)
+        values = dist.sum(torch.tensor([self.images, self.count, *(self.sums[k] for k in keys)],
+                                       dtype=torch.float64))
+        self.images, self.count = int(values[0]), int(values[1])
+        self.sums = dict(zip(keys, values[2:].tolist()))
+
     def images_per_s(self) -> float:
         return self.images / max(time.perf_counter() - self.started - self.paused, 1e-9)
 
@@ -250,20 +412,33 @@ class EpochLoop:
     validation with a lower loss than any before, the checkpoint is also saved as ``best``
     (None: not kept). After :meth:`run`, ``train_loss``/``val_loss`` are the last logged
     ones (NaN: none), ``val_metrics`` the last validation's, and ``images_per_s`` the rate
-    of the last train row."""
+    of the last train row (of every process together).
+
+    The data loaders (``workers`` processes each, :func:`make_loader`) live as long as the
+    loop: :meth:`close` ends their workers. With several processes (``trainer.dist``), only
+    rank 0 gets a ``log`` (the others None), saves checkpoints and validates.
+    """
 
     def __init__(self, trainer: Trainer, train_set: StoreDataset, val_set: StoreDataset | None, total: int,
-                 log: MetricsLog, checkpoint: Checkpoint, workers: int = 0, progress: TrainProgress | None = None,
-                 best: Checkpoint | None = None):
-        self.trainer, self.config = trainer, trainer.config
+                 log: MetricsLog | None, checkpoint: Checkpoint, workers: int = 0,
+                 progress: TrainProgress | None = None, best: Checkpoint | None = None):
+        self.trainer, self.config, self.dist = trainer, trainer.config, trainer.dist
         self.train_set, self.val_set, self.total = train_set, val_set, total
         self.log, self.checkpoint, self.workers, self.progress = log, checkpoint, workers, progress
-        self.best, self.best_loss = best, log.best_val_loss()
+        self.best = best
+        self.best_loss = log.best_val_loss() if log is not None else math.inf
         self.val_metrics: dict[str, float] = {}
+        self.sampler = EpochSampler(len(train_set), self.config.seed, self.config.batch_size, self.dist.rank,
+                                    self.dist.world_size)
         self.per_epoch = math.ceil(len(train_set) / self.config.batch_size)
         self.train_loss = self.val_loss = float("nan")
         self.images_per_s = 0.0
         self.started = time.perf_counter()
+        dev = trainer.device
+        self._train_loader = make_loader(train_set, dev, workers, batch_sampler=self.sampler)
+        self._val_loader = None
+        if val_set is not None and self.dist.is_main:
+            self._val_loader = make_loader(val_set, dev, workers, batch_size=self.config.batch_size)
         self._window = _TrainWindow()
 
     def run(self, at: Position) -> Position:
@@ -272,17 +447,27 @@ class EpochLoop:
             at = self._epoch(at)
             if at.batch >= self.per_epoch:
                 at = Position(at.step, at.epoch + 1, 0)
-            improved = self.val_set is not None and at.batch == 0 and self._validate(at)
-            self.checkpoint.save(self.trainer, at)
+            improved = self._val_loader is not None and at.batch == 0 and self._validate(at)
+            self._save(self.checkpoint, at)
             if improved and self.best is not None:
-                self.best.save(self.trainer, at)
+                self._save(self.best, at)
         return at
+
+    def close(self) -> None:
+        """End the loaders' worker processes."""
+        self._train_loader = self._val_loader = None
+
+    def _save(self, checkpoint: Checkpoint, at: Position) -> None:
+        if self.dist.is_main:
+            started = time.perf_counter()
+            checkpoint.save(self.trainer, at)
+            self._window.paused += time.perf_counter() - started
 
     def _epoch(self, at: Position) -> Position:
         """The steps of epoch ``at.epoch`` from batch ``at.batch`` on, until it or the run ends."""
         config, dev = self.config, self.trainer.device
-        sampler = EpochSampler(len(self.train_set), config.seed, at.epoch, at.batch, config.batch_size)
-        for batch in _loader(self.train_set, config.batch_size, sampler, self.workers, dev):
+        self.sampler.set_epoch(at.epoch, at.batch)
+        for batch in self._train_loader:
             batch = _to(batch, dev)
             losses = self.trainer.step(batch, at.step)
             at = replace(at, step=at.step + 1, batch=at.batch + 1)
@@ -292,26 +477,29 @@ class EpochLoop:
             if at.step % config.log_every == 0 or at.step == self.total:
                 self._log_train(at)
             if at.step % config.checkpoint_every == 0:
-                self.checkpoint.save(self.trainer, at)
+                self._save(self.checkpoint, at)
             if at.step >= self.total:
                 break
         return at
 
     def _log_train(self, at: Position) -> None:
+        self._window.pooled(self.dist)
         self.images_per_s = self._window.images_per_s()
         means = self._window.means()
         self.train_loss = means["loss"]
-        self.log.write({"step": at.step, "epoch": at.epoch, "split": "train", "lr": self.config.lr, **means,
-                        "images_per_s": round(self.images_per_s, 3), "seconds": self._seconds()})
+        if self.log is not None:
+            self.log.write({"step": at.step, "epoch": at.epoch, "split": "train", "lr": self.config.lr, **means,
+                            "images_per_s": round(self.images_per_s, 3), "seconds": self._seconds()})
         self._window = _TrainWindow()
 
     def _validate(self, at: Position) -> bool:
         """Validation after epoch ``at.epoch - 1``; whether its loss is the lowest so far."""
         started = time.perf_counter()
-        self.val_metrics = self.trainer.validate(self.val_set, self.workers)
+        self.val_metrics = self.trainer.validate(self.val_set, loader=self._val_loader)
         self.val_loss = self.val_metrics["loss"]
-        self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", **self.val_metrics,
-                        "lr": self.config.lr, "seconds": self._seconds()})
+        if self.log is not None:
+            self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", **self.val_metrics,
+                            "lr": self.config.lr, "seconds": self._seconds()})
         self._window.paused += time.perf_counter() - started
         improved = self.val_loss < self.best_loss
         self.best_loss = min(self.best_loss, self.val_loss)
