@@ -391,6 +391,20 @@ def test_module_assembles_232_channels_at_paper_widths():
         EpipolarFeatureTransformer(resolution=16)(rgb, df, sf, depth, inp["geom"])
 
 
+def test_under_bf16_autocast_the_transfer_runs_in_float32():
+    # torch has no bf16 sparse product on the CPU; nets under autocast hand over bf16 features
+    inp = random_inputs(6, B=2, H=6, W=8, R=12)
+    rng = np.random.default_rng(6)
+    depth = torch.tensor(np.stack([inp["near"], inp["far"], inp["far"] + 0.2, inp["far"] + 0.9], 1))
+    rgb = torch.tensor(rng.normal(size=(2, 3, 6, 8)), dtype=torch.float32)
+    df, sf = (torch.tensor(rng.normal(size=(2, c, 6, 8)), dtype=torch.bfloat16) for c in (8, 4))
+    eft = EpipolarFeatureTransformer(EFTConfig(), resolution=12)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = eft(rgb, df, sf, depth, inp["geom"])
+    assert out.dtype == torch.float32
+    torch.testing.assert_close(out, eft(rgb, df.float(), sf.float(), depth, inp["geom"]), rtol=0, atol=0)
+
+
 def test_the_overhead_resolution_comes_from_the_data_not_the_config():
     # A run config saved when EFTConfig still had a resolution loads, without it.
     config = TrainConfig.from_dict({"stage": "overhead", "stores": ["s.zarr"], "eft": {"resolution": 300, "gating": "surface"}})

@@ -482,7 +482,11 @@ class EpipolarFeatureTransformer(nn.Module):
         if geom.resolution != self.resolution:
             raise ValueError(f"geometry is for a {geom.resolution}-pixel overhead image, "
                              f"the transformer for {self.resolution}")
-        features = torch.cat([rgb, depth_features, seg_features], dim=1)
-        parts = [best_guess_height(geom, depth), frustum_mask(geom)]
-        parts += [self.transfer(features, geom, depth[:, a], depth[:, b]) for a, b in OBJECT_SEGMENTS]
-        return torch.cat([p.to(features.dtype) for p in parts], dim=1)
+        # the transfer is geometry, done in float32 under any autocast: torch has no bf16
+        # sparse product on the CPU, and half-precision sums over long segments lose the mean
+        dtype = torch.promote_types(torch.float32, torch.result_type(rgb, depth_features))
+        with torch.autocast(rgb.device.type, enabled=False):
+            features = torch.cat([rgb, depth_features, seg_features], dim=1).to(dtype)
+            parts = [best_guess_height(geom, depth), frustum_mask(geom)]
+            parts += [self.transfer(features, geom, depth[:, a], depth[:, b]) for a, b in OBJECT_SEGMENTS]
+            return torch.cat([p.to(dtype) for p in parts], dim=1)
