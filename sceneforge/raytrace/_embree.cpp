@@ -44,6 +44,7 @@
 #include <cstring>
 #include <deque>
 #include <limits>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -115,6 +116,13 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
     }
 }
 
+struct BlockHits {
+    std::vector<HitRecord> hits;  // grouped by ray, in ray order
+    std::vector<int64_t> counts;  // per ray of the block
+    double t_min = std::numeric_limits<double>::infinity();
+    double t_max = -std::numeric_limits<double>::infinity();
+};
+
 struct Scene {
     RTCScene scene = nullptr;
     std::vector<int64_t> face_base;  // per geometry
@@ -134,6 +142,11 @@ struct EngineObject {
     std::vector<double>* vertices;    // (v, 3) float64, unshifted
     std::vector<int64_t>* faces;      // (m, 3)
     double shift[3];
+    // collect's per-block hit lists, kept from call to call: fresh memory costs a page fault
+    // per 4 KiB touched, which on a busy machine was a quarter of a query's time; a call
+    // that finds them in use (another thread's query) makes its own
+    std::vector<BlockHits>* scratch;
+    std::mutex* scratch_lock;
 };
 
 // ------------------------------------------------------------------ buffers
@@ -290,6 +303,8 @@ void engine_dealloc(EngineObject* self) {
     delete self->first_face;
     delete self->vertices;
     delete self->faces;
+    delete self->scratch;
+    delete self->scratch_lock;
     if (self->device) rtcReleaseDevice(self->device);
     Py_TYPE(self)->tp_free(reinterpret_cast<PyObject*>(self));
 }
@@ -333,6 +348,8 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
     }
     self->threads = threads;
     self->scenes = new std::deque<Scene>();
+    self->scratch = new std::vector<BlockHits>();
+    self->scratch_lock = new std::mutex();
     if (!copy_buffer(vertices, self->vertices, -1, "vertices") || !copy_buffer(faces, self->faces, -1, "faces"))
         return -1;
     const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
@@ -481,10 +498,21 @@ PyObject* engine_closing(EngineObject* self, PyObject* args) {
     Buffer bo, bd;
     RayRows rays;
     if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
-    std::vector<int64_t> face(n), triangle(n);
-    std::vector<double> t(n), cos(n);
-    std::vector<int32_t> instance(n);
-    std::vector<char> front(n);
+    // the results, written in place (no copies: fresh memory is costly, see scratch)
+    PyObject* out[5] = {PyByteArray_FromStringAndSize(nullptr, n * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(double)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(int32_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n)};
+    if (!out[0] || !out[1] || !out[2] || !out[3] || !out[4]) {
+        for (PyObject* o : out) Py_XDECREF(o);
+        return nullptr;
+    }
+    int64_t* face = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[0]));
+    double* t = reinterpret_cast<double*>(PyByteArray_AS_STRING(out[1]));
+    int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(out[2]));
+    int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[3]));
+    bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(out[4]));
     const int32_t* face_instance = self->instance->data();
     const int64_t* first_face = self->first_face->data();
     Py_BEGIN_ALLOW_THREADS
@@ -493,25 +521,17 @@ PyObject* engine_closing(EngineObject* self, PyObject* args) {
         init_collector(planes, self);
         const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
         for (int64_t r = b * kBlock; r < hi; ++r) {
-            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos[r]);
+            double cos;
+            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos);
             const int64_t f = face[r];
             instance[r] = f >= 0 ? face_instance[f] : -1;
             triangle[r] = f >= 0 ? f - first_face[instance[r]] : -1;
-            front[r] = cos[r] < 0;
+            front[r] = cos < 0;
         }
     });
     Py_END_ALLOW_THREADS
-    return Py_BuildValue("(NNNNN)", new_bytearray(face.data(), n * sizeof(int64_t)),
-                         new_bytearray(t.data(), n * sizeof(double)), new_bytearray(instance.data(), n * sizeof(int32_t)),
-                         new_bytearray(triangle.data(), n * sizeof(int64_t)), new_bytearray(front.data(), n));
+    return Py_BuildValue("(NNNNN)", out[0], out[1], out[2], out[3], out[4]);
 }
-
-struct BlockHits {
-    std::vector<HitRecord> hits;  // grouped by ray, in ray order
-    std::vector<int64_t> counts;  // per ray of the block
-    double t_min = std::numeric_limits<double>::infinity();
-    double t_max = -std::numeric_limits<double>::infinity();
-};
 
 // collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw
 //         [, closing_ids, near, slack])
@@ -547,11 +567,35 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         return nullptr;
     }
     if (closing && !get_scene_ids(self, closing_obj, closing_scenes)) return nullptr;
-    std::vector<int64_t> closing_face(closing ? n : 0);
-    std::vector<double> closing_t(closing ? n : 0), closing_cos(closing ? n : 0);
-    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
-    std::vector<BlockHits> blocks(n_blocks);
     const double inf = std::numeric_limits<double>::infinity();
+    // the closing hits go straight into their results: face i8, t f8, instance i4, triangle
+    // i8, front_facing bool
+    PyObject* closing_out[5] = {nullptr, nullptr, nullptr, nullptr, nullptr};
+    if (closing) {
+        const size_t sizes[5] = {sizeof(int64_t), sizeof(double), sizeof(int32_t), sizeof(int64_t), 1};
+        for (int k = 0; k < 5; ++k)
+            if (!(closing_out[k] = PyByteArray_FromStringAndSize(nullptr, n * sizes[k]))) {
+                for (PyObject* o : closing_out) Py_XDECREF(o);
+                return nullptr;
+            }
+    }
+    auto closing_array = [&](int k) { return closing ? PyByteArray_AS_STRING(closing_out[k]) : nullptr; };
+    int64_t* closing_face = reinterpret_cast<int64_t*>(closing_array(0));
+    double* closing_t = reinterpret_cast<double*>(closing_array(1));
+    int32_t* closing_inst = reinterpret_cast<int32_t*>(closing_array(2));
+    int64_t* closing_tri = reinterpret_cast<int64_t*>(closing_array(3));
+    bool* closing_front = reinterpret_cast<bool*>(closing_array(4));
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
+    std::unique_lock<std::mutex> held(*self->scratch_lock, std::try_to_lock);
+    std::vector<BlockHits> own;
+    std::vector<BlockHits>& blocks = held.owns_lock() ? *self->scratch : own;
+    if (static_cast<int64_t>(blocks.size()) < n_blocks) blocks.resize(n_blocks);
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        blocks[b].hits.clear();
+        blocks[b].t_min = inf, blocks[b].t_max = -inf;
+    }
 
     Py_BEGIN_ALLOW_THREADS
     // pass 1: trace, keeping each ray's hits (within the cut-off) with their distances
@@ -569,7 +613,12 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             c.ox = o[0], c.oy = o[1], c.oz = o[2];
             c.dx = d[0], c.dy = d[1], c.dz = d[2];
             if (closing) {
-                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], closing_cos[r]);
+                double cos;
+                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], cos);
+                const int64_t f = closing_face[r];
+                closing_inst[r] = f >= 0 ? face_instance[f] : -1;
+                closing_tri[r] = f >= 0 ? f - first_face[closing_inst[r]] : -1;
+                closing_front[r] = cos < 0;
                 c.cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
             } else {
                 c.cutoff = cutoff ? cutoff[r] : inf;
@@ -595,7 +644,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     Py_END_ALLOW_THREADS
 
     int64_t total = 0;
-    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
 
     if (raw) {
         std::vector<int64_t> ray(total), face(total);
@@ -623,9 +672,8 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     // ray * (span + 1) + (t - t_min) over the whole batch, exact key ties by face -- and drop
     // same-instance repeats as `_same_instance_repeats` does
     double t0 = inf, t1 = -inf;
-    for (auto& b : blocks) t0 = std::min(t0, b.t_min), t1 = std::max(t1, b.t_max);
+    for (int64_t b = 0; b < n_blocks; ++b) t0 = std::min(t0, blocks[b].t_min), t1 = std::max(t1, blocks[b].t_max);
     const double span = (t1 - t0) + 1.0;
-    const int32_t* face_instance = self->instance->data();
     Py_BEGIN_ALLOW_THREADS
     parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
         BlockHits& blk = blocks[b];
@@ -678,7 +726,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     Py_END_ALLOW_THREADS
 
     total = 0;
-    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
     PyObject* offsets_b = PyByteArray_FromStringAndSize(nullptr, (n + 1) * sizeof(int64_t));
     PyObject* t_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(double));
     PyObject* inst_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int32_t));
@@ -690,6 +738,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         Py_XDECREF(inst_b);
         Py_XDECREF(tri_b);
         Py_XDECREF(front_b);
+        for (PyObject* o : closing_out) Py_XDECREF(o);
         return nullptr;
     }
     int64_t* offsets = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(offsets_b));
@@ -697,7 +746,6 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(inst_b));
     int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(tri_b));
     bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(front_b));
-    const int64_t* first_face = self->first_face->data();
     int64_t k = 0;
     offsets[0] = 0;
     for (int64_t b = 0; b < n_blocks; ++b) {
@@ -716,20 +764,8 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         }
     }
     if (!closing) return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
-    std::vector<int32_t> c_inst(n);
-    std::vector<int64_t> c_tri(n);
-    std::vector<char> c_front(n);
-    for (int64_t r = 0; r < n; ++r) {
-        const int64_t f = closing_face[r];
-        c_inst[r] = f >= 0 ? face_instance[f] : -1;
-        c_tri[r] = f >= 0 ? f - first_face[c_inst[r]] : -1;
-        c_front[r] = closing_cos[r] < 0;
-    }
-    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b,
-                         new_bytearray(closing_face.data(), n * sizeof(int64_t)),
-                         new_bytearray(closing_t.data(), n * sizeof(double)),
-                         new_bytearray(c_inst.data(), n * sizeof(int32_t)),
-                         new_bytearray(c_tri.data(), n * sizeof(int64_t)), new_bytearray(c_front.data(), n));
+    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b, closing_out[0], closing_out[1],
+                         closing_out[2], closing_out[3], closing_out[4]);
 }
 
 // ------------------------------------------------------------------ closest distance
