@@ -28,6 +28,18 @@ import numpy as np
 from .conventions import ENVELOPE_LAYER, tol
 from .depth_mesh import compact, perspective_faces, perspective_points
 
+try:
+    from .raytrace._embree import face_classes as _compiled_face_classes
+    from .raytrace._embree import vertex_codes as _compiled_vertex_codes
+    from .raytrace._embree import weld_faces as _compiled_weld_faces
+except ImportError:  # the extension is not built: the numpy versions serve
+    _compiled_face_classes = _compiled_vertex_codes = _compiled_weld_faces = None
+
+#: whether the per-vertex and per-face tests of :func:`_settle_fast` and the renumbering of
+#: :func:`_weld_pieces` run compiled (sceneforge's extension) by default; the numpy versions
+#: are the reference, and the tests hold both equal
+COMPILED = _compiled_vertex_codes is not None
+
 if TYPE_CHECKING:
     from .cameras import Camera
     from .houses import House
@@ -360,7 +372,7 @@ class _Soup(NamedTuple):
 
 
 def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens: tuple, limit: np.ndarray,
-            tolerance: float) -> _Soup:
+                tolerance: float, compiled: bool | None = None) -> _Soup:
     """The faces of instances ``ids`` sorted by tests on their vertices (the fast kernel).
 
     The plain algorithm it computes: clip every face of the instances against the planes
@@ -385,7 +397,13 @@ def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens
     outside here could only lie within the tolerance of the plane: a corner inside only
     within the tolerance has a negative distance, and the cuts towards it collapse onto
     it, leaving no area.
+
+    ``compiled``: run :func:`_vertex_codes` and :func:`_face_classes` in sceneforge's
+    extension (True), in numpy (False, the reference), or compiled where it is built (None).
     """
+    compiled = COMPILED if compiled is None else compiled
+    if compiled and _compiled_vertex_codes is None:
+        raise RuntimeError("the compiled frustum tests need sceneforge's Embree extension, which is not built")
     instances = [house.instances[int(i)] for i in ids]
     n_vertices = np.array([len(inst.vertices) for inst in instances], dtype=np.int64)
     first = np.zeros(len(instances) + 1, dtype=np.int64)
@@ -395,6 +413,39 @@ def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens
         return _Soup(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int32),
                      np.zeros(1, dtype=np.int64), empty, empty, empty)
     vertices = np.concatenate([inst.vertices for inst in instances]).astype(np.float64, copy=False)
+    code = _vertex_codes(vertices, planes, camera, lens, limit, tolerance, compiled)
+    # An instance whose every vertex is outside one plane cannot reach the frustum: its
+    # faces are skipped rather than found outside one by one.
+    some = n_vertices > 0
+    reaching = np.flatnonzero(some)
+    reaching = reaching[(np.bitwise_or.reduceat(code, first[:-1][some]) & _INSIDE) == _INSIDE]
+    # The faces of the instances that may reach the frustum, as indices into ``vertices``.
+    n_faces = np.array([len(instances[k].faces) for k in reaching], dtype=np.int64)
+    start = np.zeros(len(reaching) + 1, dtype=np.int64)
+    np.cumsum(n_faces, out=start[1:])
+    corners = np.empty((start[-1], 3), dtype=np.int64)
+    for k, a, b in zip(reaching, start[:-1], start[1:]):
+        np.add(instances[k].faces, first[k], out=corners[a:b])
+    kept, hidden, cross = _face_classes(code, corners, compiled)
+    return _Soup(vertices, corners, np.asarray(ids, dtype=np.int32)[reaching], start, kept, hidden, cross)
+
+
+def _vertex_codes(vertices: np.ndarray, planes: np.ndarray, camera: "Camera", lens: tuple, limit: np.ndarray,
+                  tolerance: float, compiled: bool) -> np.ndarray:
+    """(n,) uint8: each vertex's bits (:data:`_INSIDE`: inside plane p within ``tolerance``,
+    bit p; :data:`_FRONT`: not behind the envelope) of ``vertices`` (n, 3) float64.
+
+    The compiled kernel repeats these float64 operations one for one, the matrix products
+    as numpy's OpenBLAS computes their 3-term rows (``a0 x0``, then fused multiply-adds).
+    """
+    if compiled:
+        rot, centre = camera.cam_to_world[:3, :3], camera.cam_to_world[:3, 3]
+        fx, skew, cx, fy, cy, width, border = lens
+        return np.frombuffer(_compiled_vertex_codes(
+            np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(planes, dtype=np.float64),
+            np.ascontiguousarray(rot, dtype=np.float64), np.ascontiguousarray(centre, dtype=np.float64),
+            fx, skew, cx, fy, cy, width, int(border[1, 0]) + 1, np.ascontiguousarray(limit, dtype=np.float64),
+            tolerance), dtype=np.uint8)
     n = len(vertices)
     # Planar (coordinate, vertex) layouts: numpy's passes over (n, 3) or (n, 5) arrays
     # broadcast along their short rows and take several times longer.
@@ -414,19 +465,17 @@ def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens
     np.equal(projected[2], 0.0, out=bits[:, 5])
     code = bits.view(np.uint64).ravel() * _PACK
     code >>= np.uint64(56)
-    code = code.astype(np.uint8)
-    # An instance whose every vertex is outside one plane cannot reach the frustum: its
-    # faces are skipped rather than found outside one by one.
-    some = n_vertices > 0
-    reaching = np.flatnonzero(some)
-    reaching = reaching[(np.bitwise_or.reduceat(code, first[:-1][some]) & _INSIDE) == _INSIDE]
-    # The faces of the instances that may reach the frustum, as indices into ``vertices``.
-    n_faces = np.array([len(instances[k].faces) for k in reaching], dtype=np.int64)
-    start = np.zeros(len(reaching) + 1, dtype=np.int64)
-    np.cumsum(n_faces, out=start[1:])
-    corners = np.empty((start[-1], 3), dtype=np.int64)
-    for k, a, b in zip(reaching, start[:-1], start[1:]):
-        np.add(instances[k].faces, first[k], out=corners[a:b])
+    return code.astype(np.uint8)
+
+
+def _face_classes(code: np.ndarray, corners: np.ndarray, compiled: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The faces ``corners`` (m, 3) int64 (indices into ``code``, :func:`_vertex_codes`)
+    every corner of which is inside every plane and in front of the envelope (kept), inside
+    every plane with a corner behind it (hidden), and inside each plane at some corner but
+    outside one at some corner (cross), each (k,) int64 ascending."""
+    if compiled:
+        return tuple(np.frombuffer(a, dtype=np.int64) for a in _compiled_face_classes(
+            np.ascontiguousarray(code, dtype=np.uint8), np.ascontiguousarray(corners, dtype=np.int64)))
     # Per face, the bits all its corners have and those some corner has.
     corner = code.take(corners)
     every = corner[:, 0] & corner[:, 1]
@@ -435,22 +484,23 @@ def _settle_fast(house: "House", ids, planes: np.ndarray, camera: "Camera", lens
     some |= corner[:, 2]
     cross = (some & _INSIDE) == _INSIDE  # inside each plane at some corner
     cross &= (every & _INSIDE) != _INSIDE  # outside some plane at some corner
-    return _Soup(vertices, corners, np.asarray(ids, dtype=np.int32)[reaching], start,
-                 np.flatnonzero(every == _INSIDE | _FRONT), np.flatnonzero(every == _INSIDE),
-                 np.flatnonzero(cross))
+    return np.flatnonzero(every == _INSIDE | _FRONT), np.flatnonzero(every == _INSIDE), np.flatnonzero(cross)
 
 
-def _weld_pieces(soup: _Soup, pieces: np.ndarray, source: np.ndarray) -> ClippedMesh:
+def _weld_pieces(soup: _Soup, pieces: np.ndarray, source: np.ndarray, compiled: bool = False) -> ClippedMesh:
     """The mesh of the faces ``soup.kept`` followed by ``pieces`` (k, 3, 3) cut from faces
     ``source`` of ``soup``, without sorting every vertex as :func:`weld` does.
 
     Kept faces keep their vertices, and so do uncut pieces; a cut piece's corner that is a
     corner of its face keeps that vertex; only new points (cuts, midpoints) are welded by
     coordinates and come after the instances' vertices. Vertices no face uses are dropped.
+    ``compiled``: the kept faces' gather and the renumbering in sceneforge's extension.
     """
     corners, kept, table = soup.corners, soup.kept, soup.vertices
-    index = np.empty((len(kept) + len(pieces), 3), dtype=np.int64)
-    np.take(corners, kept, axis=0, out=index[:len(kept)])
+    index = np.empty((len(pieces) if compiled else len(kept) + len(pieces), 3), dtype=np.int64)
+    if not compiled:
+        np.take(corners, kept, axis=0, out=index[:len(kept)])
+    tail = index[len(index) - len(pieces):]
     new_vertices = np.zeros((0, 3))
     if len(pieces):
         parent = table[corners[source]]
@@ -472,7 +522,19 @@ def _weld_pieces(soup: _Soup, pieces: np.ndarray, source: np.ndarray) -> Clipped
             new_vertices, new_index = _unique_rows(piece[fresh])
             idx[fresh] = len(table) + new_index
             inherited[cut] = idx
-        index[len(kept):] = inherited
+        tail[:] = inherited
+    # The instance of each face: kept faces are sorted, so count them per instance.
+    instance = np.empty(len(kept) + len(pieces), dtype=np.int32)
+    instance[:len(kept)] = np.repeat(soup.ids, np.diff(np.searchsorted(kept, soup.start)))
+    instance[len(kept):] = soup.ids[np.searchsorted(soup.start, source, side="right") - 1]
+    if compiled:
+        used, faces = _compiled_weld_faces(corners, kept, tail, len(table) + len(new_vertices))
+        used, faces = np.frombuffer(used, dtype=np.int64), np.frombuffer(faces, dtype=np.int32).reshape(-1, 3)
+        n_old = int(np.searchsorted(used, len(table)))
+        vertices = np.empty((len(used), 3))
+        np.take(table, used[:n_old], axis=0, out=vertices[:n_old])
+        np.take(new_vertices, used[n_old:] - len(table), axis=0, out=vertices[n_old:])
+        return ClippedMesh(vertices, faces, instance)
     used = np.zeros(len(table) + len(new_vertices), dtype=bool)
     used[index] = True
     renumber = np.cumsum(used, dtype=np.int32)
@@ -482,10 +544,6 @@ def _weld_pieces(soup: _Soup, pieces: np.ndarray, source: np.ndarray) -> Clipped
     n_old = renumber[len(table) - 1] + 1 if len(table) else 0
     np.compress(old, table, axis=0, out=vertices[:n_old])
     np.compress(new, new_vertices, axis=0, out=vertices[n_old:])
-    # The instance of each face: kept faces are sorted, so count them per instance.
-    instance = np.empty(len(index), dtype=np.int32)
-    instance[:len(kept)] = np.repeat(soup.ids, np.diff(np.searchsorted(kept, soup.start)))
-    instance[len(kept):] = soup.ids[np.searchsorted(soup.start, source, side="right") - 1]
     return ClippedMesh(vertices, renumber.take(index), instance)
 
 
@@ -682,7 +740,8 @@ def _refine_fast(state: np.ndarray, lens: tuple, limit: np.ndarray, max_edge: fl
     return kept, kept_src
 
 
-def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMeshConfig) -> list[ClippedMesh]:
+def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMeshConfig,
+                    compiled: bool | None = None) -> list[ClippedMesh]:
     """The :class:`ClippedMesh` of each list of instance ids in ``id_lists``.
 
     Per mesh, :func:`_settle_fast` keeps the faces wholly inside the frustum and in front of the
@@ -693,9 +752,11 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
     exactly as it would alone, and as if all its faces had gone through
     :func:`clip_triangles` (faces wholly inside first) and :func:`drop_behind_envelope`:
     those keep settled faces as they are, and in order, ahead of any cut or refined piece.
+    ``compiled`` as for :func:`_settle_fast`.
     """
     lens = _lens(camera, np.shape(d5))
-    soups = [_settle_fast(house, ids, planes, camera, lens, limit, config.clip_tolerance) for ids in id_lists]
+    soups = [_settle_fast(house, ids, planes, camera, lens, limit, config.clip_tolerance, compiled)
+             for ids in id_lists]
     crossing = [soup.vertices[soup.corners[soup.cross]] for soup in soups]
     first = np.cumsum([0] + [len(c) for c in crossing])  # of each mesh's crossing faces
     cut, cut_src = clip_triangles(np.concatenate(crossing), planes, config.clip_tolerance)
@@ -714,7 +775,7 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
     meshes = []
     for m, soup in enumerate(soups):
         own = np.flatnonzero(mesh == m)
-        meshes.append(_weld_pieces(soup, kept_tris[own], src[own]))
+        meshes.append(_weld_pieces(soup, kept_tris[own], src[own], COMPILED if compiled is None else compiled))
     return meshes
 
 

@@ -230,5 +230,11 @@ def test_compiled_compact_equals_the_numpy_one(seed):
     got, want = (depth_mesh.compact(points, faces, compiled=c) for c in (True, False))
     for a, b in zip(got, want):
         assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    # every point used (a D5 surface without holes): the points come back as a copy
+    every = np.concatenate([faces, rng.permutation(np.arange(3 * n) % n).reshape(-1, 3)])
+    got, want = (depth_mesh.compact(points, every, compiled=c) for c in (True, False))
+    for a, b in zip(got, want):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+    assert not np.shares_memory(got[0], points)
     with pytest.raises(IndexError):
         depth_mesh.compact(points, np.array([[0, 1, n]]), compiled=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sceneforge import frustum
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import tol
 from sceneforge.frustum import (
@@ -14,6 +15,7 @@ from sceneforge.frustum import (
     _lens,
     _settle_fast,
     _unique_rows,
+    _vertex_codes,
     clip_triangles,
     clip_triangles_by_plane,
     drop_behind_envelope,
@@ -588,10 +590,15 @@ def toy_house_views():
             yield house, cam, frontal_layers(house, cam, tracer)
 
 
-def assert_plain_meshes(house, cam, d5, id_lists, config):
+#: the frustum's per-vertex and per-face tests in numpy (the reference) and compiled
+SETTLE = pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not frustum.COMPILED, reason="sceneforge's extension is not built"))], ids=["numpy", "compiled"])
+
+
+def assert_plain_meshes(house, cam, d5, id_lists, config, compiled=None):
     planes = frustum_planes(cam, config.near)
     limit = _envelope_limit(d5, config.behind_envelope)
-    meshes = _clipped_meshes(house, id_lists, cam, planes, d5, limit, config)
+    meshes = _clipped_meshes(house, id_lists, cam, planes, d5, limit, config, compiled)
     for mesh, ids in zip(meshes, id_lists):
         vertices, faces, instance = plain_clipped_mesh(house, ids, cam, planes, d5, config)
         np.testing.assert_array_equal(mesh.vertices, vertices)
@@ -602,17 +609,18 @@ def assert_plain_meshes(house, cam, d5, id_lists, config):
     return meshes
 
 
-def settled(house, cam, d5, ids, config):
+def settled(house, cam, d5, ids, config, compiled=None):
     """How many faces _settle_fast keeps, passes on as having a corner behind D5 and as crossing
     a plane, and the instances it skips as outside."""
     limit = _envelope_limit(d5, config.behind_envelope)
     soup = _settle_fast(house, ids, frustum_planes(cam, config.near), cam, _lens(cam, d5.shape), limit,
-                   config.clip_tolerance)
+                        config.clip_tolerance, compiled)
     return np.array([len(soup.kept), len(soup.hidden), len(soup.cross)]), sorted(set(ids) - set(soup.ids.tolist()))
 
 
+@SETTLE
 @pytest.mark.parametrize("max_edge", [None, 1.0, 4.0])
-def test_clipped_meshes_settle_faces_by_vertex_as_the_plain_pipeline_does(max_edge):
+def test_clipped_meshes_settle_faces_by_vertex_as_the_plain_pipeline_does(max_edge, compiled):
     # _clipped_meshes keeps faces wholly inside and in front of D5, and drops faces wholly
     # outside a plane, from tests on their vertices: bit for bit what clipping and testing
     # every face gives. The occluded view with the windowed occluder of the test above:
@@ -630,19 +638,63 @@ def test_clipped_meshes_settle_faces_by_vertex_as_the_plain_pipeline_does(max_ed
     make_instance(house, name="behind", category=1, label="wall", room_id="r0", vertices=v, faces=f)
     v, f = quad(-2, -0.8 - 0.5 * tol.clip, -1, 1, -2.0)  # the left plane is at x = -0.8
     make_instance(house, name="edge", category=1, label="wall", room_id="r0", vertices=v, faces=f)
-    counts, skipped = settled(house, cam, d5, [0, 1, 2, 3, 4, 5], config)
+    counts, skipped = settled(house, cam, d5, [0, 1, 2, 3, 4, 5], config, compiled)
     assert (counts > 0).all() and skipped == [4]
-    objects, _, empty = assert_plain_meshes(house, cam, d5, [[2, 3], [0, 1, 4, 5], []], config)
+    objects, _, empty = assert_plain_meshes(house, cam, d5, [[2, 3], [0, 1, 4, 5], []], config, compiled)
     assert len(objects.faces) and not len(empty.faces)
 
 
-def test_clipped_meshes_of_toy_houses_match_the_plain_pipeline():
+@SETTLE
+def test_clipped_meshes_of_toy_houses_match_the_plain_pipeline(compiled):
     config = ViewMeshConfig()
     counts = np.zeros(3, dtype=np.int64)
     for house, cam, layers in toy_house_views():
         inst = np.asarray(layers.instance)
         ids = [np.unique(inst[inst >= 0]).tolist(), [k for k, i in enumerate(house.instances) if i.envelope]]
         d5 = np.asarray(layers.depth[4])
-        assert_plain_meshes(house, cam, d5, ids, config)
-        counts += sum(settled(house, cam, d5, one, config)[0] for one in ids)
+        assert_plain_meshes(house, cam, d5, ids, config, compiled)
+        counts += sum(settled(house, cam, d5, one, config, compiled)[0] for one in ids)
     assert (counts > 0).all()
+
+
+@pytest.mark.skipif(not frustum.COMPILED, reason="sceneforge's extension is not built")
+def test_compiled_vertex_codes_and_face_classes_equal_numpy_bit_for_bit():
+    # Vertices all around a skewed camera, many within float64 rounding of a frustum plane
+    # or of the envelope limit at their pixel, some behind the camera and on its plane.
+    rng = np.random.default_rng(7)
+    where, view = np.array([0.3, 1.2, -0.4]), np.array([2.0, 0.9, 3.0])
+    K = np.array(look_at_camera(where, view, width=40, height=30).K, dtype=np.float64)
+    K[0, 1] = 0.7
+    cam = look_at_camera(where, view, K=K, width=40, height=30)
+    planes = frustum_planes(cam, 0.01)
+    points = rng.normal(size=(60_000, 3)) * 3 + cam.cam_to_world[:3, 3]
+    # project a third onto a random plane, then nudge by a few ulps (and the tolerance)
+    on = rng.integers(0, 5, 20_000)
+    p = points[:20_000]
+    p -= (np.einsum("ij,ij->i", p, planes[on, :3]) + planes[on, 3])[:, None] * planes[on, :3]
+    p += planes[on, :3] * (tol.clip * rng.integers(-1, 2, 20_000) + 1e-15 * rng.integers(-4, 5, 20_000))[:, None]
+    points[-10:] = cam.cam_to_world[:3, 3]  # z = 0
+    d5 = 1.0 + 4.0 * rng.random((30, 40))
+    d5[rng.random(d5.shape) < 0.1] = np.nan
+    config = ViewMeshConfig()
+    limit = _envelope_limit(d5, config.behind_envelope)
+    lens = _lens(cam, d5.shape)
+    # a third exactly at the limit of their pixel (depth within an ulp or two)
+    cam_frame = (points[20_000:40_000] - cam.cam_to_world[:3, 3]) @ cam.cam_to_world[:3, :3]
+    px = np.floor(rng.random((20_000, 2)) * [40, 30]) + 0.5
+    z = np.nan_to_num(limit[(px[:, 1].astype(int) * 40 + px[:, 0].astype(int))], posinf=2.0)
+    z = z * (1 + 2.2e-16 * rng.integers(-2, 3, 20_000))
+    cam_frame = np.linalg.solve(K, np.column_stack([px, np.ones(20_000)]).T).T * z[:, None]
+    points[20_000:40_000] = cam_frame @ cam.cam_to_world[:3, :3].T + cam.cam_to_world[:3, 3]
+    numpy_codes = _vertex_codes(points, planes, cam, lens, limit, tol.clip, False)
+    codes = _vertex_codes(points, planes, cam, lens, limit, tol.clip, True)
+    np.testing.assert_array_equal(codes, numpy_codes)
+    assert len(np.unique(numpy_codes)) > 10  # many combinations of bits, both envelope sides
+    corners = rng.integers(0, len(points), (50_000, 3))
+    for got, want in zip(frustum._face_classes(codes, corners, True), frustum._face_classes(codes, corners, False)):
+        np.testing.assert_array_equal(got, want)
+        assert len(want)
+    with pytest.raises(IndexError):
+        frustum._face_classes(codes, np.array([[0, 1, len(points)]]), True)
+    with pytest.raises(IndexError):
+        frustum._compiled_weld_faces(corners, np.array([0]), np.array([[0, 1, len(points)]]), len(points))

@@ -20,10 +20,12 @@
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
 //
-// Three kernels that read no scene live here too, as the one compiled part of sceneforge:
-// the layer rules of SPEC 4 (sceneforge.layers.apply_rules) and the depth -> triangles
-// block rule and compaction (sceneforge.depth_mesh.grid_faces, compact). Each repeats its
-// numpy reference operation for operation; the tests hold them equal bit for bit.
+// Kernels that read no scene live here too, as the one compiled part of sceneforge: the
+// layer rules of SPEC 4 (sceneforge.layers.apply_rules), the depth -> triangles block rule
+// and compaction (sceneforge.depth_mesh.grid_faces, compact) and the frustum's per-vertex
+// and per-face tests and the renumbering of the kept faces (sceneforge.frustum._vertex_codes,
+// _face_classes, _weld_pieces). Each repeats its numpy reference operation for operation;
+// the tests hold them equal bit for bit.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -42,6 +44,7 @@
 #include <cstring>
 #include <deque>
 #include <limits>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <tuple>
@@ -113,6 +116,13 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
     }
 }
 
+struct BlockHits {
+    std::vector<HitRecord> hits;  // grouped by ray, in ray order
+    std::vector<int64_t> counts;  // per ray of the block
+    double t_min = std::numeric_limits<double>::infinity();
+    double t_max = -std::numeric_limits<double>::infinity();
+};
+
 struct Scene {
     RTCScene scene = nullptr;
     std::vector<int64_t> face_base;  // per geometry
@@ -132,6 +142,11 @@ struct EngineObject {
     std::vector<double>* vertices;    // (v, 3) float64, unshifted
     std::vector<int64_t>* faces;      // (m, 3)
     double shift[3];
+    // collect's per-block hit lists, kept from call to call: fresh memory costs a page fault
+    // per 4 KiB touched, which on a busy machine was a quarter of a query's time; a call
+    // that finds them in use (another thread's query) makes its own
+    std::vector<BlockHits>* scratch;
+    std::mutex* scratch_lock;
 };
 
 // ------------------------------------------------------------------ buffers
@@ -288,6 +303,8 @@ void engine_dealloc(EngineObject* self) {
     delete self->first_face;
     delete self->vertices;
     delete self->faces;
+    delete self->scratch;
+    delete self->scratch_lock;
     if (self->device) rtcReleaseDevice(self->device);
     Py_TYPE(self)->tp_free(reinterpret_cast<PyObject*>(self));
 }
@@ -331,6 +348,8 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
     }
     self->threads = threads;
     self->scenes = new std::deque<Scene>();
+    self->scratch = new std::vector<BlockHits>();
+    self->scratch_lock = new std::mutex();
     if (!copy_buffer(vertices, self->vertices, -1, "vertices") || !copy_buffer(faces, self->faces, -1, "faces"))
         return -1;
     const Py_ssize_t m = static_cast<Py_ssize_t>(self->faces->size() / 3);
@@ -479,10 +498,21 @@ PyObject* engine_closing(EngineObject* self, PyObject* args) {
     Buffer bo, bd;
     RayRows rays;
     if (!get_scene_ids(self, ids, scenes) || !get_rays(origins, directions, n, bo, bd, rays)) return nullptr;
-    std::vector<int64_t> face(n), triangle(n);
-    std::vector<double> t(n), cos(n);
-    std::vector<int32_t> instance(n);
-    std::vector<char> front(n);
+    // the results, written in place (no copies: fresh memory is costly, see scratch)
+    PyObject* out[5] = {PyByteArray_FromStringAndSize(nullptr, n * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(double)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(int32_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, n)};
+    if (!out[0] || !out[1] || !out[2] || !out[3] || !out[4]) {
+        for (PyObject* o : out) Py_XDECREF(o);
+        return nullptr;
+    }
+    int64_t* face = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[0]));
+    double* t = reinterpret_cast<double*>(PyByteArray_AS_STRING(out[1]));
+    int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(out[2]));
+    int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[3]));
+    bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(out[4]));
     const int32_t* face_instance = self->instance->data();
     const int64_t* first_face = self->first_face->data();
     Py_BEGIN_ALLOW_THREADS
@@ -491,25 +521,17 @@ PyObject* engine_closing(EngineObject* self, PyObject* args) {
         init_collector(planes, self);
         const int64_t hi = std::min<int64_t>(n, (b + 1) * kBlock);
         for (int64_t r = b * kBlock; r < hi; ++r) {
-            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos[r]);
+            double cos;
+            closing_hit(self, scenes, rays.origin(r), rays.direction(r), near, planes, face[r], t[r], cos);
             const int64_t f = face[r];
             instance[r] = f >= 0 ? face_instance[f] : -1;
             triangle[r] = f >= 0 ? f - first_face[instance[r]] : -1;
-            front[r] = cos[r] < 0;
+            front[r] = cos < 0;
         }
     });
     Py_END_ALLOW_THREADS
-    return Py_BuildValue("(NNNNN)", new_bytearray(face.data(), n * sizeof(int64_t)),
-                         new_bytearray(t.data(), n * sizeof(double)), new_bytearray(instance.data(), n * sizeof(int32_t)),
-                         new_bytearray(triangle.data(), n * sizeof(int64_t)), new_bytearray(front.data(), n));
+    return Py_BuildValue("(NNNNN)", out[0], out[1], out[2], out[3], out[4]);
 }
-
-struct BlockHits {
-    std::vector<HitRecord> hits;  // grouped by ray, in ray order
-    std::vector<int64_t> counts;  // per ray of the block
-    double t_min = std::numeric_limits<double>::infinity();
-    double t_max = -std::numeric_limits<double>::infinity();
-};
 
 // collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw
 //         [, closing_ids, near, slack])
@@ -545,11 +567,35 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         return nullptr;
     }
     if (closing && !get_scene_ids(self, closing_obj, closing_scenes)) return nullptr;
-    std::vector<int64_t> closing_face(closing ? n : 0);
-    std::vector<double> closing_t(closing ? n : 0), closing_cos(closing ? n : 0);
-    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
-    std::vector<BlockHits> blocks(n_blocks);
     const double inf = std::numeric_limits<double>::infinity();
+    // the closing hits go straight into their results: face i8, t f8, instance i4, triangle
+    // i8, front_facing bool
+    PyObject* closing_out[5] = {nullptr, nullptr, nullptr, nullptr, nullptr};
+    if (closing) {
+        const size_t sizes[5] = {sizeof(int64_t), sizeof(double), sizeof(int32_t), sizeof(int64_t), 1};
+        for (int k = 0; k < 5; ++k)
+            if (!(closing_out[k] = PyByteArray_FromStringAndSize(nullptr, n * sizes[k]))) {
+                for (PyObject* o : closing_out) Py_XDECREF(o);
+                return nullptr;
+            }
+    }
+    auto closing_array = [&](int k) { return closing ? PyByteArray_AS_STRING(closing_out[k]) : nullptr; };
+    int64_t* closing_face = reinterpret_cast<int64_t*>(closing_array(0));
+    double* closing_t = reinterpret_cast<double*>(closing_array(1));
+    int32_t* closing_inst = reinterpret_cast<int32_t*>(closing_array(2));
+    int64_t* closing_tri = reinterpret_cast<int64_t*>(closing_array(3));
+    bool* closing_front = reinterpret_cast<bool*>(closing_array(4));
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
+    std::unique_lock<std::mutex> held(*self->scratch_lock, std::try_to_lock);
+    std::vector<BlockHits> own;
+    std::vector<BlockHits>& blocks = held.owns_lock() ? *self->scratch : own;
+    if (static_cast<int64_t>(blocks.size()) < n_blocks) blocks.resize(n_blocks);
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        blocks[b].hits.clear();
+        blocks[b].t_min = inf, blocks[b].t_max = -inf;
+    }
 
     Py_BEGIN_ALLOW_THREADS
     // pass 1: trace, keeping each ray's hits (within the cut-off) with their distances
@@ -567,7 +613,12 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             c.ox = o[0], c.oy = o[1], c.oz = o[2];
             c.dx = d[0], c.dy = d[1], c.dz = d[2];
             if (closing) {
-                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], closing_cos[r]);
+                double cos;
+                closing_hit(self, closing_scenes, o, d, near, c, closing_face[r], closing_t[r], cos);
+                const int64_t f = closing_face[r];
+                closing_inst[r] = f >= 0 ? face_instance[f] : -1;
+                closing_tri[r] = f >= 0 ? f - first_face[closing_inst[r]] : -1;
+                closing_front[r] = cos < 0;
                 c.cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
             } else {
                 c.cutoff = cutoff ? cutoff[r] : inf;
@@ -593,7 +644,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     Py_END_ALLOW_THREADS
 
     int64_t total = 0;
-    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
 
     if (raw) {
         std::vector<int64_t> ray(total), face(total);
@@ -621,9 +672,8 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     // ray * (span + 1) + (t - t_min) over the whole batch, exact key ties by face -- and drop
     // same-instance repeats as `_same_instance_repeats` does
     double t0 = inf, t1 = -inf;
-    for (auto& b : blocks) t0 = std::min(t0, b.t_min), t1 = std::max(t1, b.t_max);
+    for (int64_t b = 0; b < n_blocks; ++b) t0 = std::min(t0, blocks[b].t_min), t1 = std::max(t1, blocks[b].t_max);
     const double span = (t1 - t0) + 1.0;
-    const int32_t* face_instance = self->instance->data();
     Py_BEGIN_ALLOW_THREADS
     parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
         BlockHits& blk = blocks[b];
@@ -676,7 +726,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     Py_END_ALLOW_THREADS
 
     total = 0;
-    for (auto& b : blocks) total += static_cast<int64_t>(b.hits.size());
+    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
     PyObject* offsets_b = PyByteArray_FromStringAndSize(nullptr, (n + 1) * sizeof(int64_t));
     PyObject* t_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(double));
     PyObject* inst_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int32_t));
@@ -688,6 +738,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         Py_XDECREF(inst_b);
         Py_XDECREF(tri_b);
         Py_XDECREF(front_b);
+        for (PyObject* o : closing_out) Py_XDECREF(o);
         return nullptr;
     }
     int64_t* offsets = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(offsets_b));
@@ -695,7 +746,6 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
     int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(inst_b));
     int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(tri_b));
     bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(front_b));
-    const int64_t* first_face = self->first_face->data();
     int64_t k = 0;
     offsets[0] = 0;
     for (int64_t b = 0; b < n_blocks; ++b) {
@@ -714,20 +764,8 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         }
     }
     if (!closing) return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
-    std::vector<int32_t> c_inst(n);
-    std::vector<int64_t> c_tri(n);
-    std::vector<char> c_front(n);
-    for (int64_t r = 0; r < n; ++r) {
-        const int64_t f = closing_face[r];
-        c_inst[r] = f >= 0 ? face_instance[f] : -1;
-        c_tri[r] = f >= 0 ? f - first_face[c_inst[r]] : -1;
-        c_front[r] = closing_cos[r] < 0;
-    }
-    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b,
-                         new_bytearray(closing_face.data(), n * sizeof(int64_t)),
-                         new_bytearray(closing_t.data(), n * sizeof(double)),
-                         new_bytearray(c_inst.data(), n * sizeof(int32_t)),
-                         new_bytearray(c_tri.data(), n * sizeof(int64_t)), new_bytearray(c_front.data(), n));
+    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b, closing_out[0], closing_out[1],
+                         closing_out[2], closing_out[3], closing_out[4]);
 }
 
 // ------------------------------------------------------------------ closest distance
@@ -1076,6 +1114,222 @@ PyObject* compact_faces(PyObject*, PyObject* args) {
     return Py_BuildValue("(NN)", used_b, faces_b);
 }
 
+// ------------------------------------------------------------------ frustum: settling faces
+
+// numpy's float64 -> int64 cast (x86's cvttsd2si): truncation, INT64_MIN where the value
+// is NaN or out of range (the vertices _project gives garbage pixels: behind the camera)
+__attribute__((always_inline)) inline int64_t numpy_int64(double x) {
+    if (!(x >= -9.2233720368547758e18 && x < 9.2233720368547758e18)) return std::numeric_limits<int64_t>::min();
+    return static_cast<int64_t>(x);
+}
+
+// One row of a 3-term matrix product as numpy's float64 matmul computes it (OpenBLAS's
+// FMA kernels: a0 x0 rounded, then two fused multiply-adds in k order). std::fma is exact
+// by definition, so this does not depend on the compiler's flags.
+__attribute__((always_inline)) inline double matmul_row3(double a0, double a1, double a2, double x0, double x1, double x2) {
+    return std::fma(a2, x2, std::fma(a1, x1, a0 * x0));
+}
+
+// The loop of vertex_codes. It is compiled twice, inlined into a function for CPUs with FMA
+// instructions (std::fma one instruction) and into one for those without (a libm call):
+// the same bits either way.
+__attribute__((always_inline)) inline void vertex_codes_loop(
+    const double* V, const double* P, const double* R, const double* C, const double* L, double fx, double skew,
+    double cx, double fy, double cy, Py_ssize_t width, Py_ssize_t height, double tolerance, Py_ssize_t n,
+    uint8_t* code) {
+    const double border_u = static_cast<double>(width - 1), border_v = static_cast<double>(height - 1);
+    const uint64_t last = static_cast<uint64_t>(width * height - 1);
+    for (Py_ssize_t i = 0; i < n; ++i) {
+        const double* p = V + 3 * i;
+        uint8_t bits = 0;
+        for (int k = 0; k < 5; ++k) {
+            const double* q = P + 4 * k;
+            double d = matmul_row3(q[0], q[1], q[2], p[0], p[1], p[2]);
+            d += q[3];
+            bits |= static_cast<uint8_t>(d >= -tolerance) << k;
+        }
+        // the camera frame: (p - centre) @ rot, i.e. rot.T @ (p - centre)
+        const double x0 = p[0] - C[0], x1 = p[1] - C[1], x2 = p[2] - C[2];
+        const double x = matmul_row3(R[0], R[3], R[6], x0, x1, x2);
+        const double y = matmul_row3(R[1], R[4], R[7], x0, x1, x2);
+        const double z = matmul_row3(R[2], R[5], R[8], x0, x1, x2);
+        double u = fx * x;
+        if (skew != 0.0) u += skew * y;
+        u /= z;
+        u += cx;
+        double v = fy * y;
+        v /= z;
+        v += cy;
+        // np.maximum / np.minimum propagate NaN
+        if (!std::isnan(u)) u = std::min(std::max(u, 0.0), border_u);
+        if (!std::isnan(v)) v = std::min(std::max(v, 0.0), border_v);
+        // pixel v * width + u in int64 (wrapping, as numpy's), then take(mode="clip")
+        const uint64_t flat = static_cast<uint64_t>(numpy_int64(v)) * static_cast<uint64_t>(width) +
+                              static_cast<uint64_t>(numpy_int64(u));
+        const int64_t signed_flat = static_cast<int64_t>(flat);
+        const uint64_t pixel = signed_flat < 0 ? 0 : std::min(static_cast<uint64_t>(signed_flat), last);
+        bits |= static_cast<uint8_t>(!(z > L[pixel])) << 5;
+        code[i] = bits;
+    }
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+__attribute__((target("fma"))) void vertex_codes_fma(const double* V, const double* P, const double* R,
+                                                      const double* C, const double* L, double fx, double skew,
+                                                      double cx, double fy, double cy, Py_ssize_t width,
+                                                      Py_ssize_t height, double tolerance, Py_ssize_t n,
+                                                      uint8_t* code) {
+    vertex_codes_loop(V, P, R, C, L, fx, skew, cx, fy, cy, width, height, tolerance, n, code);
+}
+#endif
+
+void vertex_codes_plain(const double* V, const double* P, const double* R, const double* C, const double* L,
+                        double fx, double skew, double cx, double fy, double cy, Py_ssize_t width,
+                        Py_ssize_t height, double tolerance, Py_ssize_t n, uint8_t* code) {
+    vertex_codes_loop(V, P, R, C, L, fx, skew, cx, fy, cy, width, height, tolerance, n, code);
+}
+
+// vertex_codes(vertices (n,3) f8, planes (5,4) f8, rot (3,3) f8, centre (3,) f8, fx, skew,
+//              cx, fy, cy, width, height, limit (height*width,) f8, tolerance) -> bytearray
+//              (n,) u8: sceneforge.frustum._vertex_codes, bit p inside plane p within the
+//              tolerance, bit 5 not behind the envelope (the same float64 operations)
+PyObject* vertex_codes(PyObject*, PyObject* args) {
+    PyObject *vo, *po, *ro, *co, *lo;
+    double fx, skew, cx, fy, cy, tolerance;
+    Py_ssize_t width, height;
+    if (!PyArg_ParseTuple(args, "OOOOdddddnnOd", &vo, &po, &ro, &co, &fx, &skew, &cx, &fy, &cy, &width, &height,
+                          &lo, &tolerance))
+        return nullptr;
+    Buffer bv, bp, br, bc, bl;
+    if (width < 1 || height < 1 || !get_buffer(vo, bv, 3 * sizeof(double), -1, "vertices") ||
+        !get_buffer(po, bp, sizeof(double), 20, "planes") || !get_buffer(ro, br, sizeof(double), 9, "rot") ||
+        !get_buffer(co, bc, sizeof(double), 3, "centre") ||
+        !get_buffer(lo, bl, sizeof(double), width * height, "limit"))
+        return nullptr;
+    const double* V = static_cast<const double*>(bv.view.buf);
+    const double* P = static_cast<const double*>(bp.view.buf);
+    const double* R = static_cast<const double*>(br.view.buf);
+    const double* C = static_cast<const double*>(bc.view.buf);
+    const double* L = static_cast<const double*>(bl.view.buf);
+    const Py_ssize_t n = bv.view.len / static_cast<Py_ssize_t>(3 * sizeof(double));
+    PyObject* out = PyByteArray_FromStringAndSize(nullptr, n);
+    if (!out) return nullptr;
+    uint8_t* code = reinterpret_cast<uint8_t*>(PyByteArray_AS_STRING(out));
+    Py_BEGIN_ALLOW_THREADS
+#if defined(__x86_64__) && defined(__GNUC__)
+    if (__builtin_cpu_supports("fma"))
+        vertex_codes_fma(V, P, R, C, L, fx, skew, cx, fy, cy, width, height, tolerance, n, code);
+    else
+#endif
+        vertex_codes_plain(V, P, R, C, L, fx, skew, cx, fy, cy, width, height, tolerance, n, code);
+    Py_END_ALLOW_THREADS
+    return out;
+}
+
+// face_classes(code (n,) u8, corners (m,3) i8) -> (kept, hidden, cross) i8 bytearrays:
+// the faces every corner of which is inside every plane and in front of the envelope, those
+// inside every plane with a corner behind, and those inside each plane at some corner but
+// outside some plane at some corner (sceneforge.frustum._face_classes)
+PyObject* face_classes(PyObject*, PyObject* args) {
+    PyObject *co, *fo;
+    if (!PyArg_ParseTuple(args, "OO", &co, &fo)) return nullptr;
+    Buffer bc, bf;
+    if (!get_buffer(co, bc, 1, -1, "code") || !get_buffer(fo, bf, 3 * sizeof(int64_t), -1, "corners")) return nullptr;
+    const uint8_t* code = static_cast<const uint8_t*>(bc.view.buf);
+    const int64_t* F = static_cast<const int64_t*>(bf.view.buf);
+    const Py_ssize_t n = bc.view.len, m = bf.view.len / static_cast<Py_ssize_t>(3 * sizeof(int64_t));
+    for (Py_ssize_t i = 0; i < 3 * m; ++i)
+        if (F[i] < 0 || F[i] >= n) {
+            PyErr_SetString(PyExc_IndexError, "face_classes: a face corner outside the vertices");
+            return nullptr;
+        }
+    // pass 1: each face's class (0 kept, 1 hidden, 2 cross, 3 none); pass 2 writes them
+    std::vector<uint8_t> cls(m);
+    size_t count[4] = {0, 0, 0, 0};
+    Py_BEGIN_ALLOW_THREADS
+    constexpr uint8_t inside = 0x1F, front = 0x20;
+    for (Py_ssize_t f = 0; f < m; ++f) {
+        const uint8_t a = code[F[3 * f]], b = code[F[3 * f + 1]], c = code[F[3 * f + 2]];
+        const uint8_t every = a & b & c, some = a | b | c;
+        const uint8_t k = every == (inside | front) ? 0
+                          : every == inside          ? 1
+                          : ((some & inside) == inside && (every & inside) != inside) ? 2
+                                                                                     : 3;
+        cls[f] = k;
+        ++count[k];
+    }
+    Py_END_ALLOW_THREADS
+    PyObject* out[3];
+    int64_t* cursor[3];
+    for (int k = 0; k < 3; ++k) {
+        out[k] = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(count[k] * sizeof(int64_t)));
+        if (!out[k]) {
+            for (int j = 0; j < k; ++j) Py_DECREF(out[j]);
+            return nullptr;
+        }
+        cursor[k] = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[k]));
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t f = 0; f < m; ++f)
+        if (cls[f] < 3) *cursor[cls[f]]++ = f;
+    Py_END_ALLOW_THREADS
+    return Py_BuildValue("(NNN)", out[0], out[1], out[2]);
+}
+
+// weld_faces(corners (m,3) i8, kept (k,) i8, tail (p,3) i8, n_vertices) -> (used (u,) i8,
+// faces (k+p,3) i4) bytearrays: the faces corners[kept] then tail, as indices into the
+// vertices they use (ascending) -- the end of sceneforge.frustum._weld_pieces
+PyObject* weld_faces(PyObject*, PyObject* args) {
+    PyObject *co, *ko, *to;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "OOOn", &co, &ko, &to, &n)) return nullptr;
+    Buffer bc, bk, bt;
+    if (n < 0 || !get_buffer(co, bc, 3 * sizeof(int64_t), -1, "corners") ||
+        !get_buffer(ko, bk, sizeof(int64_t), -1, "kept") || !get_buffer(to, bt, 3 * sizeof(int64_t), -1, "tail"))
+        return nullptr;
+    const int64_t* F = static_cast<const int64_t*>(bc.view.buf);
+    const int64_t* K = static_cast<const int64_t*>(bk.view.buf);
+    const int64_t* T = static_cast<const int64_t*>(bt.view.buf);
+    const Py_ssize_t m = bc.view.len / static_cast<Py_ssize_t>(3 * sizeof(int64_t));
+    const Py_ssize_t k = bk.view.len / static_cast<Py_ssize_t>(sizeof(int64_t));
+    const Py_ssize_t p3 = bt.view.len / static_cast<Py_ssize_t>(sizeof(int64_t));
+    for (Py_ssize_t i = 0; i < k; ++i)
+        if (K[i] < 0 || K[i] >= m) {
+            PyErr_SetString(PyExc_IndexError, "weld_faces: a kept face outside the faces");
+            return nullptr;
+        }
+    std::vector<int32_t> renumber(n, 0);
+    bool bad = false;
+    auto mark = [&](int64_t v) {
+        if (v < 0 || v >= n) bad = true;
+        else renumber[v] = 1;
+    };
+    for (Py_ssize_t i = 0; i < k; ++i)
+        for (int a = 0; a < 3; ++a) mark(F[3 * K[i] + a]);
+    for (Py_ssize_t i = 0; i < p3; ++i) mark(T[i]);
+    if (bad) {
+        PyErr_SetString(PyExc_IndexError, "weld_faces: a face corner outside the vertices");
+        return nullptr;
+    }
+    int64_t u = 0;
+    for (Py_ssize_t v = 0; v < n; ++v) renumber[v] = renumber[v] ? static_cast<int32_t>(u++) : -1;
+    PyObject* used_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(u * sizeof(int64_t)));
+    PyObject* faces_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>((3 * k + p3) * sizeof(int32_t)));
+    if (!used_b || !faces_b) {
+        Py_XDECREF(used_b);
+        Py_XDECREF(faces_b);
+        return nullptr;
+    }
+    int64_t* used = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(used_b));
+    int32_t* out = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(faces_b));
+    for (Py_ssize_t v = 0; v < n; ++v)
+        if (renumber[v] >= 0) used[renumber[v]] = v;
+    for (Py_ssize_t i = 0; i < k; ++i)
+        for (int a = 0; a < 3; ++a) *out++ = renumber[F[3 * K[i] + a]];
+    for (Py_ssize_t i = 0; i < p3; ++i) *out++ = renumber[T[i]];
+    return Py_BuildValue("(NN)", used_b, faces_b);
+}
+
 PyMethodDef module_methods[] = {
     {"layer_rules", layer_rules, METH_VARARGS,
      "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
@@ -1083,6 +1337,14 @@ PyMethodDef module_methods[] = {
     {"grid_faces", grid_faces, METH_VARARGS,
      "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
      "sceneforge.depth_mesh.grid_faces"},
+    {"vertex_codes", vertex_codes, METH_VARARGS,
+     "vertex_codes(vertices, planes, rot, centre, fx, skew, cx, fy, cy, width, height, limit, tolerance) -> "
+     "(n,) uint8 (bytes), as sceneforge.frustum._vertex_codes"},
+    {"face_classes", face_classes, METH_VARARGS,
+     "face_classes(code, corners) -> (kept, hidden, cross) int64 (bytes), as sceneforge.frustum._face_classes"},
+    {"weld_faces", weld_faces, METH_VARARGS,
+     "weld_faces(corners, kept, tail, n_vertices) -> (used int64, faces int32) (bytes), as the end of "
+     "sceneforge.frustum._weld_pieces"},
     {"compact_faces", compact_faces, METH_VARARGS,
      "compact_faces(faces, n_pixels) -> (used pixels, renumbered faces) int64 (bytes), as "
      "sceneforge.depth_mesh.compact"},
