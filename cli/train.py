@@ -135,8 +135,9 @@ def train(config, run_dir, device, workers, resume, tensorboard, wandb):
 @config_options(PredictConfig, PREDICT_OPTIONS)
 @click.option("--device", default="auto", show_default=True,
               help="auto (the GPU when torch sees one), cpu, cuda, cuda:N (GPU N) or mps.")
-@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="DataLoader worker processes.")
+@click.option("--workers", type=click.IntRange(min=0), default=None,
+              help="DataLoader worker processes reading STORE (0: read in this process). "
+                   "[default: the usable CPU cores, at most 4]")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def predict(run, store, out, config, device, workers, overwrite):
     """Write the predictions of the trained RUN for the test views of STORE (the houses of

@@ -443,14 +443,17 @@ def test_depth_net_overfits_four_views(store, tmp_path):
 
 
 def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
-    from sceneforge.store import open_store, validate_store
+    from sceneforge.store import array_digests, open_store, validate_store
 
     run = tmp_path / "overhead"
     train(small_config("overhead", store, depth_run=frontal_runs["depth"], seg_run=frontal_runs["seg"],
                        max_steps=1), run, device="cpu", tensorboard=False)
     out = tmp_path / "pred.zarr"
-    summary = predict(run, store, str(out), device="cpu", batch_size=4, split="all")
+    summary = predict(run, store, str(out), device="cpu", batch_size=4, split="all", workers=2)
     assert summary.predicted == summary.views == 6 and summary.stages == ("depth", "seg", "overhead")
+    in_process = tmp_path / "pred0.zarr"
+    predict(run, store, str(in_process), device="cpu", batch_size=4, split="all", workers=0)
+    assert array_digests(str(out)) == array_digests(str(in_process))  # workers read, they don't decide
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
     # schema, layout and attributes hold; what a 2-step net predicts fails content checks

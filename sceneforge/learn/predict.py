@@ -45,6 +45,7 @@ from .networks import SEG_LAYERS, masked_layers
 from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
+from .trainer import default_workers, make_loader
 
 if TYPE_CHECKING:
     from sceneforge.config import DatasetConfig
@@ -151,13 +152,16 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
             batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
             floor: str = "segmentation",
-            device: str = "auto", workers: int = 0, overwrite: bool = False, progress=None) -> PredictSummary:
+            device: str = "auto", workers: int | None = None, overwrite: bool = False,
+            progress=None) -> PredictSummary:
     """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
 
     camera_run : a camera proposal run; the overhead cameras come from it instead of the store
     split      : ``test``, ``val``, ``train`` (the houses of that split) or ``all`` (every view)
     split_file : the split file (default: the one the run was trained with)
     floor      : how the floor leaves the overhead heights (:func:`overhead_heights`)
+    workers    : DataLoader worker processes reading the store (None: the trainer's default,
+                 :func:`~.trainer.default_workers`; 0: read in this process)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
     Raises :class:`SceneforgeError` for a camera run given as RUN, an existing ``out``
     without ``overwrite``, a store without RGB images, or a split without views in ``store``.
@@ -188,7 +192,8 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         if get_stage(config.stage).uses_eft:
             eft = EpipolarFeatureTransformer(config.eft, resolution=index.shapes["Wo"])
         dataset = StoreDataset(index, ("rgb", "camera"))
-        loader = torch.utils.data.DataLoader(dataset, batch_size=batch_size, num_workers=workers)
+        loader = make_loader(dataset, dev, default_workers() if workers is None else workers,
+                             batch_size=batch_size)
 
         render_config = _prediction_config(source.config)
         n = len(source)
