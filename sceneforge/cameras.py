@@ -577,6 +577,147 @@ def _select(valid: list[_Candidate], k: int, min_separation: float) -> list[_Can
     return sorted(kept, key=lambda c: (-c.score, c.order))
 
 
+class _ViewCheck:
+    """The rejection rules of :func:`sample_cameras`, for one house and config.
+
+    Calling it with a candidate's ``eye : (3,) float64`` and ``yaw`` (radians) gives
+    ``(reason, camera, stats)``: the first rule the view breaks and ``(None, None)``, or
+    ``None`` with its :class:`Camera` at ``config.width``×``config.height`` and the
+    :class:`ViewStats` of its layers traced at ``check_width``×``check_height``.
+    """
+
+    def __init__(self, house: "House", config: CameraSamplerConfig, tracer: "HouseTracer"):
+        from .layers import instance_labels
+
+        self.config = config
+        self.tracer = tracer
+        self.K = default_intrinsics(config.width, config.height, config.half_fov_x)
+        self.inst_category, _ = instance_labels(house)
+        # index -1 (no hit) reads the extra False at the end
+        self.is_floor = np.array([i.category == NYU40_IDS["floor"] for i in house.instances] + [False])
+        self.is_cover = np.array([is_floor_cover(i.category, i.label) for i in house.instances] + [False])
+        #: straight down, the one ray of the ``not_above_floor`` check: (1, 3) float64
+        self.down = np.array([[0.0, -1.0, 0.0]])
+
+    def __call__(self, eye: np.ndarray, yaw: float) -> tuple[str | None, Camera | None, ViewStats | None]:
+        reason = self._placement(eye)
+        if reason is not None:
+            return reason, None, None
+        camera = Camera(self.K, pose_from_view(eye, self.config.view_direction(yaw)),
+                        self.config.width, self.config.height)
+        stats = self._stats(camera)
+        reason = self._content(stats)
+        if reason is not None:
+            return reason, None, None
+        return None, camera, stats
+
+    def _placement(self, eye: np.ndarray) -> str | None:
+        """``not_above_floor`` or ``too_close`` for ``eye : (3,) float64``, else None.
+
+        These need two rays, not a view, so they run before the view is traced.
+        """
+        h = self.config.eye_height
+        below = self.tracer.first_hit(eye[None], self.down)
+        k, t = below.instance[0], below.t[0]
+        on_floor = self.is_floor[k] and abs(t - h) < tol.eye_above_floor
+        on_cover = self.is_cover[k] and h - tol.floor_cover <= t <= h + tol.eye_above_floor
+        if not (on_floor or on_cover):
+            return "not_above_floor"
+        if self.tracer.closest_distance(eye[None])[0] < self.config.min_surface_distance:
+            return "too_close"
+        return None
+
+    def _stats(self, camera: Camera) -> ViewStats:
+        """The statistics of ``camera``'s layers, traced at the small check resolution (the
+        same field of view) because a candidate only needs to be judged, not rendered."""
+        from .layers import layers_from_frontal
+
+        small = camera.resized(self.config.check_width, self.config.check_height)
+        origins, directions, depth_scale = small.rays()
+        layers = layers_from_frontal(self.tracer.frontal_query(origins, directions), depth_scale,
+                                     self.inst_category, small.shape)
+        return ViewStats.of(layers)
+
+    def _content(self, stats: ViewStats) -> str | None:
+        """The first of ``escapes``, ``mostly_void``, ``mostly_envelope``, ``few_objects``
+        that ``stats`` breaks, else None."""
+        config = self.config
+        if stats.escape_fraction > config.max_escape_fraction:
+            return "escapes"
+        if stats.void_fraction > config.max_void_fraction:
+            return "mostly_void"
+        if stats.envelope_fraction > config.max_envelope_fraction:
+            return "mostly_envelope"
+        if stats.object_fraction < config.min_object_fraction:
+            return "few_objects"
+        return None
+
+
+def _draw_eye(tris: "FloorSurfaces", p_tri: np.ndarray, eye_height: float,
+              rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """A candidate's ``eye : (3,) float64``, ``eye_height`` above a point uniform by area on
+    ``tris`` (``p_tri : (n,) float64``, their areas' shares), and its uniform yaw in radians.
+
+    Consumes ``rng`` as the sampler always has: the triangle, two barycentric draws, the yaw.
+    """
+    k = rng.choice(len(tris), p=p_tri)
+    r1, r2, yaw = rng.random(), rng.random(), rng.random() * 2 * math.pi
+    # sqrt(r1) makes the point uniform over the triangle's area, not crowded at corner a
+    s = math.sqrt(r1)
+    a, b, c = tris.corners[k]
+    eye = (1 - s) * a + s * (1 - r2) * b + s * r2 * c + [0.0, eye_height, 0.0]
+    return eye, yaw
+
+
+def _valid_candidates(room: RoomSampling, tris: "FloorSurfaces", check: _ViewCheck,
+                      config: CameraSamplerConfig, rng: np.random.Generator,
+                      report: SamplerReport) -> list[_Candidate]:
+    """Draw candidates on ``room``'s floor ``tris`` until it has ``pool_per_camera`` valid
+    ones per camera of its share or ``candidates_per_camera`` per camera ran out.
+
+    Counts each draw in ``room.candidates`` and ``report.candidates``, each rejection in
+    ``report.rejected``, and the valid ones in ``room.valid``.
+    """
+    p_tri = tris.area / tris.area.sum()
+    valid: list[_Candidate] = []
+    while (len(valid) < room.share * config.pool_per_camera
+           and room.candidates < room.share * config.candidates_per_camera):
+        room.candidates += 1
+        report.candidates += 1
+        eye, yaw = _draw_eye(tris, p_tri, config.eye_height, rng)
+        reason, camera, stats = check(eye, yaw)
+        if reason is not None:
+            report.rejected[reason] += 1
+            continue
+        valid.append(_Candidate(report.candidates, camera, config.score(stats), stats))
+    room.valid = len(valid)
+    return valid
+
+
+def _fill_and_report(chosen: list[tuple[RoomSampling, list[_Candidate]]],
+                     spare: list[tuple[RoomSampling, _Candidate]], n: int,
+                     report: SamplerReport) -> list[Camera]:
+    """The cameras, room by room, best first: each room's ``chosen`` ones, then the best of
+    the ``spare`` valid candidates for the cameras rooms could not fill.
+
+    The spares left over count as ``outscored``; every camera gets its
+    ``report.views`` entry, and ``report.accepted`` and each room's ``accepted`` are set.
+    """
+    missing = n - sum(len(kept) for _, kept in chosen)
+    spare.sort(key=lambda rc: (-rc[1].score, rc[1].order))
+    extra = spare[:max(missing, 0)]
+    report.rejected["outscored"] += len(spare) - len(extra)
+
+    cameras: list[Camera] = []
+    for room, kept in chosen + [(room, [c]) for room, c in extra]:
+        room.accepted += len(kept)
+        for c in kept:
+            cameras.append(c.camera)
+            report.views.append(SampledView(room.room, room.level, c.score, c.stats))
+    report.accepted = len(cameras)
+    return cameras
+
+
 def sample_cameras(
     house: "House",
     n: int,
@@ -619,7 +760,6 @@ def sample_cameras(
     The result depends only on the house, ``config`` and the state of ``rng``. Cameras come
     room by room, best first; ``report.views`` gives each one's room, score and statistics.
     """
-    from .layers import instance_labels, layers_from_frontal
     from .raytrace import HouseTracer
 
     if not isinstance(rng, np.random.Generator):
@@ -630,73 +770,14 @@ def sample_cameras(
     report = SamplerReport(requested=n)
     cells = _rooms_to_sample(house, surfaces, n, report)
     report.rooms = [room for room, _ in cells]
-
-    K = default_intrinsics(config.width, config.height, config.half_fov_x)
-    inst_category, _ = instance_labels(house)
-    # index -1 (no hit) reads the extra False at the end
-    is_floor = np.array([i.category == NYU40_IDS["floor"] for i in house.instances] + [False])
-    is_cover = np.array([is_floor_cover(i.category, i.label) for i in house.instances] + [False])
-    down = np.array([[0.0, -1.0, 0.0]])
-    h = config.eye_height
-
-    def check(eye: np.ndarray, yaw: float) -> tuple[str | None, Camera | None, ViewStats | None]:
-        below = tracer.first_hit(eye[None], down)
-        k, t = below.instance[0], below.t[0]
-        on_floor = is_floor[k] and abs(t - h) < tol.eye_above_floor
-        on_cover = is_cover[k] and h - tol.floor_cover <= t <= h + tol.eye_above_floor
-        if not (on_floor or on_cover):
-            return "not_above_floor", None, None
-        if tracer.closest_distance(eye[None])[0] < config.min_surface_distance:
-            return "too_close", None, None
-        camera = Camera(K, pose_from_view(eye, config.view_direction(yaw)), config.width, config.height)
-        small = camera.resized(config.check_width, config.check_height)
-        origins, directions, depth_scale = small.rays()
-        layers = layers_from_frontal(tracer.frontal_query(origins, directions), depth_scale, inst_category,
-                                     small.shape)
-        stats = ViewStats.of(layers)
-        if stats.escape_fraction > config.max_escape_fraction:
-            return "escapes", None, None
-        if stats.void_fraction > config.max_void_fraction:
-            return "mostly_void", None, None
-        if stats.envelope_fraction > config.max_envelope_fraction:
-            return "mostly_envelope", None, None
-        if stats.object_fraction < config.min_object_fraction:
-            return "few_objects", None, None
-        return None, camera, stats
+    check = _ViewCheck(house, config, tracer)
 
     chosen: list[tuple[RoomSampling, list[_Candidate]]] = []
     spare: list[tuple[RoomSampling, _Candidate]] = []
+    # Rooms draw in order from the one rng, so each room's candidates depend on the rooms before it.
     for room, tris in cells:
-        p_tri = tris.area / tris.area.sum()
-        valid: list[_Candidate] = []
-        while (len(valid) < room.share * config.pool_per_camera
-               and room.candidates < room.share * config.candidates_per_camera):
-            room.candidates += 1
-            report.candidates += 1
-            k = rng.choice(len(tris), p=p_tri)
-            r1, r2, yaw = rng.random(), rng.random(), rng.random() * 2 * math.pi
-            s = math.sqrt(r1)
-            a, b, c = tris.corners[k]
-            eye = (1 - s) * a + s * (1 - r2) * b + s * r2 * c + [0.0, h, 0.0]
-            reason, camera, stats = check(eye, yaw)
-            if reason is not None:
-                report.rejected[reason] += 1
-                continue
-            valid.append(_Candidate(report.candidates, camera, config.score(stats), stats))
-        room.valid = len(valid)
+        valid = _valid_candidates(room, tris, check, config, rng, report)
         kept = _select(valid, room.share, config.min_separation)
         chosen.append((room, kept))
         spare += [(room, c) for c in valid if c not in kept]
-    missing = n - sum(len(kept) for _, kept in chosen)
-    spare.sort(key=lambda rc: (-rc[1].score, rc[1].order))
-    extra = spare[:max(missing, 0)]
-    report.rejected["outscored"] += len(spare) - len(extra)
-
-    cameras: list[Camera] = []
-    for room, kept in chosen + [(room, [c]) for room, c in extra]:
-        room.accepted += len(kept)
-        for c in kept:
-            cameras.append(c.camera)
-            report.views.append(SampledView(room.room, room.level, c.score, c.stats))
-    report.accepted = len(cameras)
-    return cameras, report
+    return _fill_and_report(chosen, spare, n, report), report

@@ -488,6 +488,127 @@ def _take_columns(table: np.ndarray, idx: np.ndarray, out: np.ndarray) -> None:
         table[axis].take(idx, out=out[axis], mode="clip")
 
 
+def _layer_pixels(finite: np.ndarray) -> dict[int, np.ndarray]:
+    """Per layer, the flat indices of its finite pixels; ``finite : (5, H*W) bool``.
+
+    When D2 has D1's pixels (D4 D3's), its entry *is* D1's array: :func:`_object_points`
+    tests that with ``is`` to reuse D1's gathers.
+    """
+    pixels = {}
+    for front, back in OBJECT_SEGMENTS:
+        pixels[front] = np.flatnonzero(finite[front])
+        # D2 is usually finite where D1 is, and D4 where D3 is: gather their rays once.
+        same = np.array_equal(finite[back], finite[front])
+        pixels[back] = pixels[front] if same else np.flatnonzero(finite[back])
+    pixels[ENVELOPE_LAYER] = np.flatnonzero(finite[ENVELOPE_LAYER])
+    return pixels
+
+
+def _object_points(
+    rays: np.ndarray, depth: np.ndarray, instance: np.ndarray, pixels: dict[int, np.ndarray], offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame points of D1..D4's finite pixels and the instance of each one's layer.
+
+    rays     : (3, H*W) float64  :func:`_frame_rays`
+    depth    : (5, H*W) float    planar depths, NaN: no surface
+    instance : (2, H*W) int      D1 and D3 instances
+    pixels   : :func:`_layer_pixels`
+    offset   : (3,) float64      the camera centre in the frame
+
+    Returns ``objects : (3, n) float64`` (D1, D2, D3, D4 pixels in that order, one row per
+    axis) and ``inst : (n,)`` of ``instance``'s dtype: D1's instance for D1 and D2, D3's
+    for D3 and D4.
+    """
+    n = sum(len(pixels[layer]) for segment in OBJECT_SEGMENTS for layer in segment)
+    objects = np.empty((3, n))  # returned transposed: (n, 3) with contiguous columns
+    inst = np.empty(n, dtype=instance.dtype)
+    start = 0
+    for inst_layer, (front, back) in enumerate(OBJECT_SEGMENTS):
+        i_front, i_back = pixels[front], pixels[back]
+        mid = start + len(i_front)
+        end = mid + len(i_back)
+        out_front, out_back = objects[:, start:mid], objects[:, mid:end]
+        _take_columns(rays, i_back, out_back)
+        instance[inst_layer].take(i_back, out=inst[mid:end], mode="clip")
+        if i_front is i_back:  # the same pixels: scale the back layer's rays
+            np.multiply(out_back, depth[front].take(i_front), out=out_front)
+            inst[start:mid] = inst[mid:end]
+        else:
+            _take_columns(rays, i_front, out_front)
+            out_front *= depth[front].take(i_front)
+            instance[inst_layer].take(i_front, out=inst[start:mid], mode="clip")
+        out_back *= depth[back].take(i_back)
+        start = end
+    if offset.any():
+        objects += offset[:, None]
+    return objects, inst
+
+
+def _envelope_points(
+    rays: np.ndarray, depth: np.ndarray, env_category: np.ndarray, pixels: dict[int, np.ndarray], offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """D5's finite pixels: ``(envelope_z, env_up, env_category)``, each ``(k,)``.
+
+    ``envelope_z`` float64 planar depths, ``env_up`` float64 heights in the frame,
+    ``env_category`` their classes, from ``env_category : (H*W,)``; the other arguments as
+    :func:`_object_points`. When D5 is finite everywhere, ``rays``' up row becomes
+    ``env_up`` in place (no gathers, no new array): call this after the object points.
+    """
+    env_idx = pixels[ENVELOPE_LAYER]
+    if len(env_idx) == depth.shape[1]:  # the usual case: D5 everywhere, no gathers
+        envelope_z = depth[ENVELOPE_LAYER].astype(np.float64)
+        env_up = np.multiply(rays[1], envelope_z, out=rays[1])  # the table is used up
+    else:
+        envelope_z = depth[ENVELOPE_LAYER].take(env_idx).astype(np.float64)
+        env_up = rays[1].take(env_idx)
+        env_up *= envelope_z
+        env_category = env_category.take(env_idx)
+    if offset[1]:
+        env_up += offset[1]
+    return envelope_z, env_up, env_category
+
+
+def _room_votes(
+    d1_instance: np.ndarray, d1_point_instance: np.ndarray, d1_point_room: np.ndarray, inst_room: np.ndarray,
+    n_rooms: int,
+) -> np.ndarray:
+    """(n_rooms,) int64: per room, the pixels whose D1 instance (``d1_instance : (H*W,)``,
+    >= 0: visible) is in it.
+
+    ``d1_point_instance`` and ``d1_point_room``, ``(n1,)``, are the instances and rooms of
+    the finite D1 pixels' points; ``inst_room`` is :func:`_room_codes`' table.
+    """
+    # Usually the visible pixels are all finite D1 pixels, whose rooms are at hand; else
+    # every pixel's room is looked up.
+    if np.count_nonzero(d1_instance >= 0) == np.count_nonzero(d1_point_instance >= 0):
+        voters = d1_point_room
+    else:
+        voters = inst_room.take(d1_instance)
+    return np.bincount(voters + 1, minlength=n_rooms + 1)[1:]
+
+
+def _view_floor(
+    house: "House", camera: "Camera", frame: GravityFrame, env_up: np.ndarray, env_category: np.ndarray
+) -> tuple[float, str]:
+    """The view's floor height and which of :data:`FLOOR_SOURCES` gave it (the rules of
+    :func:`frontal_points_fast`), from the D5 points' ``env_up`` and ``env_category``,
+    both ``(k,)`` (:func:`_envelope_points`)."""
+    eye = camera.cam_to_world[:3, 3]
+    surfaces = floor_surfaces(house)
+    floor_y = surfaces.height_below(eye)
+    if floor_y is not None:
+        return floor_y, FLOOR_SOURCES[0]
+    floor = env_category == FLOOR
+    if floor.any():
+        # The frame's up axis is world +Y from the frame origin.
+        floor_y = float(np.median(env_up[floor], overwrite_input=True)) + float(frame.origin[1])
+        return floor_y, FLOOR_SOURCES[1]
+    floor_y = surfaces.level_height(level_at(house, float(eye[1])).id, float(eye[1]))
+    if floor_y is not None:
+        return floor_y, FLOOR_SOURCES[2]
+    return level_floor_y(house, float(eye[1])), FLOOR_SOURCES[3]
+
+
 def frontal_points_fast(
     house: "House", camera: "Camera", layers: Layers, frame: GravityFrame, config: OverheadConfig
 ) -> tuple[FrontalPoints, float, str]:
@@ -521,88 +642,30 @@ def frontal_points_fast(
     excluded = np.append(_class_mask(house, config.room_excluded), False)
     depth = np.asarray(layers.depth).reshape(5, H * W)
     instance = np.asarray(layers.instance).reshape(2, H * W)
-    finite = np.isfinite(depth)
-    pixels = {}
-    for front, back in OBJECT_SEGMENTS:
-        pixels[front] = np.flatnonzero(finite[front])
-        # D2 is usually finite where D1 is, and D4 where D3 is: gather their rays once.
-        same = np.array_equal(finite[back], finite[front])
-        pixels[back] = pixels[front] if same else np.flatnonzero(finite[back])
-    pixels[ENVELOPE_LAYER] = np.flatnonzero(finite[ENVELOPE_LAYER])
-
-    n = sum(len(pixels[layer]) for segment in OBJECT_SEGMENTS for layer in segment)
-    objects = np.empty((3, n))  # returned transposed: (n, 3) with contiguous columns
-    inst = np.empty(n, dtype=instance.dtype)
-    start = 0
-    for inst_layer, (front, back) in enumerate(OBJECT_SEGMENTS):
-        i_front, i_back = pixels[front], pixels[back]
-        mid = start + len(i_front)
-        end = mid + len(i_back)
-        out_front, out_back = objects[:, start:mid], objects[:, mid:end]
-        _take_columns(rays, i_back, out_back)
-        instance[inst_layer].take(i_back, out=inst[mid:end], mode="clip")
-        if i_front is i_back:  # the same pixels: scale the back layer's rays
-            np.multiply(out_back, depth[front].take(i_front), out=out_front)
-            inst[start:mid] = inst[mid:end]
-        else:
-            _take_columns(rays, i_front, out_front)
-            out_front *= depth[front].take(i_front)
-            instance[inst_layer].take(i_front, out=inst[start:mid], mode="clip")
-        out_back *= depth[back].take(i_back)
-        start = end
-    if offset.any():
-        objects += offset[:, None]
-    env_idx = pixels[ENVELOPE_LAYER]
+    pixels = _layer_pixels(np.isfinite(depth))
+    objects, inst = _object_points(rays, depth, instance, pixels, offset)
     env_category = np.asarray(layers.envelope_category).reshape(H * W)
-    if len(env_idx) == H * W:  # the usual case: D5 everywhere, no gathers
-        envelope_z = depth[ENVELOPE_LAYER].astype(np.float64)
-        env_up = np.multiply(rays[1], envelope_z, out=rays[1])  # the table is used up
-    else:
-        envelope_z = depth[ENVELOPE_LAYER].take(env_idx).astype(np.float64)
-        env_up = rays[1].take(env_idx)
-        env_up *= envelope_z
-        env_category = env_category.take(env_idx)
-    if offset[1]:
-        env_up += offset[1]
+    envelope_z, env_up, env_category = _envelope_points(rays, depth, env_category, pixels, offset)
 
     d1, d2 = OBJECT_SEGMENTS[0]
-    n12 = len(pixels[d1]) + len(pixels[d2])
+    n1 = len(pixels[d1])
+    n12 = n1 + len(pixels[d2])
     tops = [t for t in (objects[1, :n12], env_up) if len(t)]
     if not tops:
         raise SceneforgeError("the frontal view sees no surface: cannot place an overhead camera")
     # -1 (no instance) indexes the appended "no room, not excluded" entries.
     object_room = inst_room.take(inst)
-    # Visible object pixels (D1 instance >= 0) vote for their instance's room. Usually they
-    # are all finite D1 pixels, whose rooms are at hand; else every pixel's room is looked up.
-    n1 = len(pixels[d1])
-    if np.count_nonzero(instance[0] >= 0) == np.count_nonzero(inst[:n1] >= 0):
-        voters = object_room[:n1]
-    else:
-        voters = inst_room.take(instance[0])
-    room_votes = np.bincount(voters + 1, minlength=len(room_ids) + 1)[1:]
     points = FrontalPoints(
         objects=objects.T,
         object_room=object_room,
         object_excluded=excluded.take(inst),
         envelope_z=envelope_z,
-        room_votes=room_votes,
+        room_votes=_room_votes(instance[0], inst[:n1], object_room[:n1], inst_room, len(room_ids)),
         room_ids=room_ids,
         top=float(max(t.max() for t in tops)),
     )
-    eye = camera.cam_to_world[:3, 3]
-    surfaces = floor_surfaces(house)
-    floor_y = surfaces.height_below(eye)
-    if floor_y is not None:
-        return points, floor_y, FLOOR_SOURCES[0]
-    floor = env_category == FLOOR
-    if floor.any():
-        # The frame's up axis is world +Y from the frame origin.
-        floor_y = float(np.median(env_up[floor], overwrite_input=True)) + float(frame.origin[1])
-        return points, floor_y, FLOOR_SOURCES[1]
-    floor_y = surfaces.level_height(level_at(house, float(eye[1])).id, float(eye[1]))
-    if floor_y is not None:
-        return points, floor_y, FLOOR_SOURCES[2]
-    return points, level_floor_y(house, float(eye[1])), FLOOR_SOURCES[3]
+    floor_y, floor_source = _view_floor(house, camera, frame, env_up, env_category)
+    return points, floor_y, floor_source
 
 
 def place_overhead_camera(
