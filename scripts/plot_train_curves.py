@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sceneforge.learn.train import read_config, read_metrics
+from sceneforge.learn.train import draw_losses, read_config, read_metrics
 
 PANELS = (("depth", "depth (masked Huber, eq. 1)"), ("seg", "segmentation (cross-entropy, 2 layers)"),
           ("overhead", "overhead (L1 height + cross-entropy)"), ("camera", "camera proposal (L1 on tx, ty, sigma)"))
@@ -29,14 +29,8 @@ def main() -> None:
         if not (run / "metrics.csv").exists():
             ax.set_title(f"{label}: no run")
             continue
-        rows = read_metrics(run / "metrics.csv")
-        for split, style in (("train", "-"), ("val", "o-")):
-            pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["split"] == split]
-            if pts:
-                ax.plot(*zip(*pts), style, label=split, markersize=4)
+        draw_losses(ax, read_metrics(run / "metrics.csv"))
         config = read_config(run)
-        ax.set_yscale("log")
-        ax.set_xlabel("step")
         ax.set_title(f"{label}, {config.epochs} epochs", fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()

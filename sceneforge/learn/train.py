@@ -157,21 +157,26 @@ def resolve_device(device: str) -> torch.device:
     return dev
 
 
+def draw_losses(ax, rows: list[dict]) -> None:
+    """Train (line) and validation (dots) loss of ``metrics.csv`` rows against steps, log
+    scale, on the matplotlib axes ``ax``."""
+    for split, style in (("train", "-"), ("val", "o-")):
+        pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["split"] == split]
+        if pts:
+            ax.plot(*zip(*pts), style, label=split, markersize=4)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+
+
 def plot_loss_curve(run: str | Path) -> Path:
     """Draw ``loss_curve.png`` (train and validation loss against steps) from the metrics."""
     from matplotlib.figure import Figure
 
     run = Path(run)
-    rows = read_metrics(run / "metrics.csv")
     fig = Figure(figsize=(7, 4))
     ax = fig.add_subplot()
-    for split, style in (("train", "-"), ("val", "o-")):
-        pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["split"] == split]
-        if pts:
-            ax.plot(*zip(*pts), style, label=split, markersize=4)
+    draw_losses(ax, read_metrics(run / "metrics.csv"))
     config = read_config(run)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.set_title(f"{config.stage}: batch {config.batch_size}, lr {config.lr:g}")
     ax.grid(True, which="both", alpha=0.3)
