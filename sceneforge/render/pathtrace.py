@@ -50,7 +50,7 @@ import numpy as np
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import house_lights
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
-from .tonemap import srgb_to_linear, tonemap
+from .tonemap import ToneMapped, srgb_to_linear
 
 if TYPE_CHECKING:
     from ..cameras import Camera
@@ -141,7 +141,7 @@ def mitsuba_sensor(camera: "Camera") -> dict:
     }
 
 
-class PathTracer:
+class PathTracer(ToneMapped):
     """Path-traced RGB of house views (module docs).
 
     width, height : image size in pixels; every camera must have it
@@ -168,13 +168,6 @@ class PathTracer:
     @property
     def variant(self) -> str:
         return self.mi.variant()
-
-    def render(self, house: "House", camera: "Camera") -> np.ndarray:
-        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`~.tonemap.tonemap`
-        of :meth:`render_linear`)."""
-        radiance, seen = self.render_linear(house, camera)
-        c = self.config
-        return tonemap(radiance, seen, exposure=c.exposure, tone=c.tone, background=c.background)
 
     def render_linear(self, house: "House", camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) float64 linear radiance (cd/m²) of the view and the (H, W) bool mask of

@@ -66,7 +66,7 @@ import numpy as np
 from ..cameras import opencv_to_opengl
 from ..errors import HouseError, MissingDependencyError, SceneforgeError
 from .lights import WINDOW_CONE, Light, house_lights, room_ambient, room_bounds
-from .tonemap import TONES, tonemap
+from .tonemap import TONES, ToneMapped
 
 if TYPE_CHECKING:
     from ..cameras import Camera
@@ -485,7 +485,7 @@ def _pick_device(gpu: int | None) -> tuple[EGLDevice, object]:
     return devices[gpu]
 
 
-class Renderer:
+class Renderer(ToneMapped):
     """Offscreen renderer of house views: RGB and z-buffer depth, pixel-aligned with the layers.
 
     width, height : image size in pixels; every camera must have it
@@ -529,13 +529,6 @@ class Renderer:
         self._camera_node = None
 
     # -- public API ---------------------------------------------------------------------
-
-    def render(self, house: "House", camera: "Camera") -> np.ndarray:
-        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`~.tonemap.tonemap`
-        of :meth:`render_linear`)."""
-        radiance, seen = self.render_linear(house, camera)
-        c = self.config
-        return tonemap(radiance, seen, exposure=c.exposure, tone=c.tone, background=c.background)
 
     def render_linear(self, house: "House", camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) float32 linear radiance (cd/m²) of the view and the (H, W) bool mask of

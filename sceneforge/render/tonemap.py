@@ -100,3 +100,16 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
     out = np.rint(srgb * f(255.0)).astype(np.uint8)
     out[~seen] = np.round(255.0 * np.asarray(background, dtype=np.float64)).astype(np.uint8)
     return out
+
+
+class ToneMapped:
+    """What a renderer of linear radiance gets for free: :meth:`render`, its image through
+    :func:`tonemap` with the exposure, curve and background of its ``config`` (a
+    :class:`~.raster.RenderConfig`). Both modes end in this one step."""
+
+    def render(self, house, camera) -> np.ndarray:
+        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`tonemap` of
+        ``render_linear``)."""
+        radiance, seen = self.render_linear(house, camera)
+        c = self.config
+        return tonemap(radiance, seen, exposure=c.exposure, tone=c.tone, background=c.background)
