@@ -130,15 +130,7 @@ class EmbreeBackend:
             triangle=np.frombuffer(triangle, dtype=np.int64),
             front_facing=np.frombuffer(front, dtype=bool),
         )
-        closing = FirstHit(
-            t=np.frombuffer(c_t, dtype=np.float64),
-            instance=np.frombuffer(c_instance, dtype=np.int32),
-            triangle=np.frombuffer(c_triangle, dtype=np.int64),
-            front_facing=np.frombuffer(c_front, dtype=bool),
-            face=np.frombuffer(c_face, dtype=np.int64),
-            face_normals=self._triangles.normal,
-        )
-        return FrontalHits(hits, closing)
+        return FrontalHits(hits, self._first_hits(c_face, c_t, c_instance, c_triangle, c_front))
 
     def first_hit(self, rays: Rays, instances: np.ndarray | None = None) -> FirstHit:
         """:meth:`HouseTracer.first_hit <sceneforge.raytrace.HouseTracer.first_hit>` in one
@@ -149,7 +141,10 @@ class EmbreeBackend:
             return FirstHit(np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int64), np.zeros(0, bool),
                             np.zeros(0, np.int64), self._triangles.normal)
         o, d = self._rows(rays)
-        face, t, instance, triangle, front = self._engine.closing(self._selected(instances), n, o, d, 0.0)
+        return self._first_hits(*self._engine.closing(self._selected(instances), n, o, d, 0.0))
+
+    def _first_hits(self, face, t, instance, triangle, front) -> FirstHit:
+        """The :class:`FirstHit` over the extension's result buffers (no copies)."""
         return FirstHit(
             t=np.frombuffer(t, dtype=np.float64),
             instance=np.frombuffer(instance, dtype=np.int32),
