@@ -45,7 +45,9 @@ def every_core() -> int:
 class EmbreeBackend:
     name = "embree"
 
-    def __init__(self, triangles: HouseTriangles, threads: int = 0):
+    def __init__(self, triangles: HouseTriangles, threads: int = 0, packet: int = 0):
+        """``packet``: rays per first-hit packet (16, 8, 4; 1 traces ray by ray); 0, the
+        widest the CPU runs natively. The results do not depend on it."""
         if _embree is None:
             raise MissingDependencyError(
                 "sceneforge's Embree extension", "the embree ray-tracing engine",
@@ -61,7 +63,10 @@ class EmbreeBackend:
             np.ascontiguousarray(triangles.normal_xyz, dtype=np.float64),
             np.ascontiguousarray(triangles.offset, dtype=np.float64),
             np.ascontiguousarray(shift, dtype=np.float64),
+            int(packet),
         )
+        #: rays per first-hit packet (1: ray by ray)
+        self.packet = self._engine.packet
         # subset mask bytes -> scene ids, objects before envelope (as the Open3D engine)
         self._scenes: dict[bytes, tuple[int, ...]] = {}
         for flag in (False, True):
