@@ -4,8 +4,9 @@ physical limit of its ray work.
 The limit is plain Embree doing the same ray queries, compiled from
 ``benchmarks/native_all_hits.cpp`` at run time with the system compiler: per view, the
 frontal 320×240 rays and the overhead 300×300 rays, each a first-hit pass against the
-closing instances and one traversal per ray of the objects up to the closing hit whose
-filter callback collects every hit, sorted per ray into CSR arrays; and the envelope
+closing instances (in ray packets, as sceneforge's extension traces first hits) and one
+traversal per ray of the objects up to the closing hit whose filter callback collects
+every hit, sorted per ray into CSR arrays; and the envelope
 surface's D5 rays (the view at ``ViewMeshConfig.envelope_upscale`` times its resolution,
 480×360), a first-hit pass against the envelope. sceneforge's time is
 its whole ground truth (tracing, layer rules, normals, overhead camera and truth, mesh
@@ -17,9 +18,10 @@ Houses: a bundled toy house, the breakfast room subdivided to >= 1 M triangles (
 several hits per ray. Then the throughput of two worker processes, and the peak memory of
 one worker over many views.
 
-Run with one OpenBLAS thread, as the render pipeline's workers are (numpy's thread pool
-costs more than it saves on a view's small matrix products, and fights the tracing threads
-for the cores); set ``OPENBLAS_NUM_THREADS`` to override.
+Run with one OpenBLAS thread and the malloc thresholds of the render pipeline's workers
+(:data:`sceneforge.pipeline.executors.MALLOC_THRESHOLDS`; numpy's thread pool costs more
+than it saves on a view's small matrix products, and fights the tracing threads for the
+cores); set ``OPENBLAS_NUM_THREADS`` to override.
 
     python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--quick]
 """
@@ -48,6 +50,7 @@ from sceneforge.frustum import view_mesh  # noqa: E402
 from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance  # noqa: E402
 from sceneforge.layers import frontal_layers, instance_labels  # noqa: E402
 from sceneforge.overhead import overhead_camera, overhead_instances, overhead_truth  # noqa: E402
+from sceneforge.pipeline.executors import tune_allocator  # noqa: E402
 from sceneforge.raytrace import HouseTracer  # noqa: E402
 from sceneforge.raytrace.embree_backend import AVAILABLE as EMBREE_EXTENSION  # noqa: E402
 from sceneforge.view import ViewConfig, compute_view  # noqa: E402
@@ -253,6 +256,7 @@ def _rss_mib() -> tuple[float, float]:
 
 
 def _memory_job(house, cameras, n_views: int, threads: int, checkpoints):
+    tune_allocator()  # a worker's settings (this process is spawned)
     config = ViewConfig()
     tr = HouseTracer(house, threads=threads)
     out = []
@@ -283,6 +287,7 @@ def main():
     ap.add_argument("--memory-views", type=int, default=500, help="views of the memory run (0: skip it)")
     ap.add_argument("--quick", action="store_true", help="toy house only, 50 views of memory run")
     args = ap.parse_args()
+    tune_allocator()  # as in the pipeline's worker processes (forked pools below inherit it)
 
     toy = load(discover(BUNDLED_TOY)[0])
     houses = [toy]

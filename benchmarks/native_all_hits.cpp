@@ -3,10 +3,12 @@
 // bench_ground_truth.py writes the house and each view's queries to a file, compiles this
 // program with the system compiler and runs it. Per query (a view's frontal rays, then its
 // overhead rays) it does what a frontal query must at the least: a first-hit pass against
-// the closing instances (from `near` on), then ONE traversal per ray of the object
-// instances up to the closing hit + slack, whose filter callback collects every hit; each
-// ray's hits are sorted by distance and written out in CSR layout. No float64 distances,
-// no merging, no layer rules: only the traversals and the hit lists.
+// the closing instances (from `near` on), in ray packets of the widest width the CPU runs
+// natively, then ONE traversal per ray of the object instances up to the closing hit +
+// slack, whose filter callback collects every hit; each ray's hits are sorted by distance
+// and written out in CSR layout. A query without object instances (the envelope surface's
+// rays) is its first-hit pass alone. No float64 distances, no merging, no layer rules, no
+// second look at ties: only the traversals and the hit lists.
 //
 //   native_all_hits INPUT    prints: "<best seconds> <its CPU seconds> <hits> <rays>": the
 //                            seconds for all the queries, from the round with the best wall
@@ -29,6 +31,7 @@
 #include <ctime>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <map>
@@ -61,6 +64,70 @@ static void collect(const RTCFilterFunctionNArguments* args) {
         c->out->push_back({RTCRayN_tfar(args->ray, args->N, i), RTCHitN_geomID(args->hit, args->N, i),
                            RTCHitN_primID(args->hit, args->N, i)});
         args->valid[i] = 0;
+    }
+}
+
+// The nearest hit of rays lo..hi-1 from `near` on (tfar, geometry, primitive per ray,
+// indexed from lo), K rays per rtcIntersectK packet, or one by one (K = 1).
+template <int K, class RayHitK>
+static void first_hits_k(RTCScene scene, const float* rays, int64_t lo, int64_t hi, float near, float* t,
+                         unsigned* geom, unsigned* prim) {
+    for (int64_t r0 = lo; r0 < hi; r0 += K) {
+        const int lanes = static_cast<int>(std::min<int64_t>(K, hi - r0));
+        alignas(64) int valid[K];
+        RayHitK rh;
+        for (int j = 0; j < K; ++j) {
+            const float* ray = rays + 6 * (r0 + (j < lanes ? j : 0));
+            valid[j] = j < lanes ? -1 : 0;
+            rh.ray.org_x[j] = ray[0], rh.ray.org_y[j] = ray[1], rh.ray.org_z[j] = ray[2];
+            rh.ray.dir_x[j] = ray[3], rh.ray.dir_y[j] = ray[4], rh.ray.dir_z[j] = ray[5];
+            rh.ray.tnear[j] = near, rh.ray.tfar[j] = std::numeric_limits<float>::infinity();
+            rh.ray.mask[j] = 0xFFFFFFFFu, rh.ray.flags[j] = 0, rh.ray.time[j] = 0, rh.ray.id[j] = 0;
+            rh.hit.geomID[j] = RTC_INVALID_GEOMETRY_ID;
+            rh.hit.instID[0][j] = RTC_INVALID_GEOMETRY_ID;
+        }
+#if RTC_VERSION_MAJOR >= 4
+        RTCIntersectArguments args;
+        rtcInitIntersectArguments(&args);
+        args.flags = RTC_RAY_QUERY_FLAG_COHERENT;
+        if constexpr (K == 16) rtcIntersect16(valid, scene, &rh, &args);
+        else if constexpr (K == 8) rtcIntersect8(valid, scene, &rh, &args);
+        else rtcIntersect4(valid, scene, &rh, &args);
+#else
+        RTCIntersectContext context;
+        rtcInitIntersectContext(&context);
+        context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+        if constexpr (K == 16) rtcIntersect16(valid, scene, &context, &rh);
+        else if constexpr (K == 8) rtcIntersect8(valid, scene, &context, &rh);
+        else rtcIntersect4(valid, scene, &context, &rh);
+#endif
+        for (int j = 0; j < lanes; ++j)
+            t[r0 + j - lo] = rh.ray.tfar[j], geom[r0 + j - lo] = rh.hit.geomID[j], prim[r0 + j - lo] = rh.hit.primID[j];
+    }
+}
+
+static void first_hits(int packet, RTCScene scene, const float* rays, int64_t lo, int64_t hi, float near, float* t,
+                       unsigned* geom, unsigned* prim) {
+    if (packet == 16) return first_hits_k<16, RTCRayHit16>(scene, rays, lo, hi, near, t, geom, prim);
+    if (packet == 8) return first_hits_k<8, RTCRayHit8>(scene, rays, lo, hi, near, t, geom, prim);
+    if (packet == 4) return first_hits_k<4, RTCRayHit4>(scene, rays, lo, hi, near, t, geom, prim);
+    for (int64_t r = lo; r < hi; ++r) {
+        const float* ray = rays + 6 * r;
+        RTCRayHit rh;
+        rh.ray.org_x = ray[0], rh.ray.org_y = ray[1], rh.ray.org_z = ray[2];
+        rh.ray.dir_x = ray[3], rh.ray.dir_y = ray[4], rh.ray.dir_z = ray[5];
+        rh.ray.tnear = near, rh.ray.tfar = std::numeric_limits<float>::infinity();
+        rh.ray.mask = 0xFFFFFFFFu, rh.ray.flags = 0, rh.ray.time = 0, rh.ray.id = 0;
+        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+#if RTC_VERSION_MAJOR >= 4
+        rtcIntersect1(scene, &rh);
+#else
+        RTCIntersectContext plain;
+        rtcInitIntersectContext(&plain);
+        rtcIntersect1(scene, &plain, &rh);
+#endif
+        t[r - lo] = rh.ray.tfar, geom[r - lo] = rh.hit.geomID, prim[r - lo] = rh.hit.primID;
     }
 }
 
@@ -113,6 +180,14 @@ int main(int argc, char** argv) {
 
     const std::string config = "threads=" + std::to_string(threads);
     RTCDevice device = rtcNewDevice(config.c_str());
+    // first-hit passes in packets of the widest width the CPU runs natively (as sceneforge's
+    // extension does); PACKET=1 in the environment traces them ray by ray
+    const char* packet_env = getenv("PACKET");
+    const int packet = packet_env ? atoi(packet_env)
+                       : rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED) ? 16
+                       : rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED)  ? 8
+                       : rtcGetDeviceProperty(device, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED)  ? 4
+                                                                                                 : 1;
     std::map<std::vector<uint8_t>, RTCScene> scenes;  // one per instance subset, built once
     std::map<RTCScene, std::vector<int64_t>> first_face_of;  // per scene: each geometry's first face
     auto scene_of = [&](const std::vector<uint8_t>& mask) {
@@ -164,37 +239,33 @@ int main(int argc, char** argv) {
             std::atomic<int64_t> next{0};
             auto work = [&]() {
                 std::vector<Hit> ray_hits;
+                std::vector<float> cut(block);
+                std::vector<unsigned> geom(block), prim(block);
                 for (int64_t b; (b = next.fetch_add(1)) < n_blocks;) {
                     const int64_t lo = b * block, hi = std::min(q.n, lo + block);
                     counts[b].resize(hi - lo);
+                    // the first-hit pass against the closing instances, in packets
+                    first_hits(packet, q.closing_scene, q.rays.data(), lo, hi, q.near, cut.data(), geom.data(),
+                               prim.data());
                     for (int64_t r = lo; r < hi; ++r) {
+                        const bool hit = geom[r - lo] != RTC_INVALID_GEOMETRY_ID;
+                        if (q.first_only) {
+                            if (hit) out[b].push_back({cut[r - lo], geom[r - lo], prim[r - lo]});
+                            counts[b][r - lo] = hit ? 1 : 0;
+                            continue;
+                        }
+                        // then ONE traversal of the objects up to the closing hit + slack
                         const float* ray = q.rays.data() + 6 * r;
                         RTCRayHit rh;
                         rh.ray.org_x = ray[0], rh.ray.org_y = ray[1], rh.ray.org_z = ray[2];
                         rh.ray.dir_x = ray[3], rh.ray.dir_y = ray[4], rh.ray.dir_z = ray[5];
-                        rh.ray.tnear = q.near, rh.ray.tfar = std::numeric_limits<float>::infinity();
                         rh.ray.mask = 0xFFFFFFFFu, rh.ray.flags = 0, rh.ray.time = 0, rh.ray.id = 0;
-                        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
                         rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-#if RTC_VERSION_MAJOR >= 4
-                        rtcIntersect1(q.closing_scene, &rh);
-#else
-                        RTCIntersectContext plain;
-                        rtcInitIntersectContext(&plain);
-                        rtcIntersect1(q.closing_scene, &plain, &rh);
-#endif
-                        if (q.first_only) {
-                            const bool hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
-                            if (hit) out[b].push_back({rh.ray.tfar, rh.hit.geomID, rh.hit.primID});
-                            counts[b][r - lo] = hit ? 1 : 0;
-                            continue;
-                        }
-                        const float cut = rh.hit.geomID == RTC_INVALID_GEOMETRY_ID ? rh.ray.tfar : rh.ray.tfar + q.slack;
+                        rh.ray.tnear = 0, rh.ray.tfar = hit ? cut[r - lo] + q.slack : cut[r - lo];
+                        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
                         ray_hits.clear();
                         Context c;
                         c.out = &ray_hits;
-                        rh.ray.tnear = 0, rh.ray.tfar = cut;
-                        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
 #if RTC_VERSION_MAJOR >= 4
                         rtcInitRayQueryContext(&c.base);
                         RTCIntersectArguments args;

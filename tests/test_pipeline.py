@@ -22,7 +22,7 @@ from sceneforge.cameras import look_at_camera, write_pbrs_cameras
 from sceneforge.config import load_config
 from sceneforge.errors import EXIT_FAILURES, SceneforgeError
 from sceneforge.houses.formats.native import write_house
-from sceneforge.pipeline import render_dataset
+from sceneforge.pipeline import executors, render_dataset
 from sceneforge.store import array_digests, open_store, validate_store
 
 #: tiny views, four per toy house, two per shard (a house's views span shards): 12 views in 6 shards
@@ -463,3 +463,19 @@ def test_options_and_config_file_resolve_into_the_store(config_file, tmp_path):
     res = CliRunner().invoke(cli, ["render", "bundled:toy", str(out), "--cameras", str(tmp_path),
                                    "--views-per-house", "2"])
     assert res.exit_code == 2 and "exclude each other" in res.output
+
+
+def _allocator_settings(_):
+    return {k: os.environ.get(k) for k in ("OPENBLAS_NUM_THREADS", *executors.MALLOC_THRESHOLDS)}
+
+
+def test_worker_processes_get_single_threaded_blas_and_the_malloc_thresholds():
+    """Spawned workers start with the environment glibc and OpenBLAS read at start-up; this
+    process (the one-worker run) sets the thresholds through mallopt."""
+    with executors.executor(2) as run:
+        seen = list(run(_allocator_settings, range(2)))
+    want = {"OPENBLAS_NUM_THREADS": "1", **{k: str(v) for k, v in executors.MALLOC_THRESHOLDS.items()}}
+    assert seen == [want, want]
+    assert not {k for k in executors.MALLOC_THRESHOLDS if k in os.environ}, "the parent's environment is restored"
+    if sys.platform.startswith("linux"):
+        assert executors.tune_allocator()
