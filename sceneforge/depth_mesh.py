@@ -23,13 +23,14 @@ import numpy as np
 
 try:
     from .raytrace._embree import compact_faces as _compiled_compact
+    from .raytrace._embree import depth_surface as _compiled_depth_surface
     from .raytrace._embree import grid_faces as _compiled_grid_faces
 except ImportError:  # the extension is not built: numpy only
-    _compiled_grid_faces = _compiled_compact = None
+    _compiled_grid_faces = _compiled_compact = _compiled_depth_surface = None
 
-#: whether :func:`grid_faces` and :func:`compact` run compiled (a pass or two over the
-#: blocks and faces in sceneforge's extension; the numpy versions are the reference, and
-#: the tests hold the two equal)
+#: whether :func:`grid_faces`, :func:`compact` and :func:`depth_surface` run compiled (a
+#: few passes over the blocks and faces in sceneforge's extension; the numpy versions are
+#: the reference, and the tests hold the two equal)
 COMPILED = _compiled_grid_faces is not None
 
 # Corners of a 2×2 block: 0 = (row, col), 1 = (row, col + 1), 2 = (row + 1, col),
@@ -167,8 +168,48 @@ def _pixel_rays(K_bytes: bytes, h: int, w: int) -> np.ndarray:
     return rays
 
 
-def perspective_faces(depth: np.ndarray, K: np.ndarray, a: float) -> np.ndarray:
+def perspective_faces(depth: np.ndarray, K: np.ndarray, a: float, compiled: bool | None = None) -> np.ndarray:
     """:func:`grid_faces` of a planar depth map (H, W) of a pinhole camera with intrinsics
     ``K`` (3, 3): a pixel's footprint at depth ``z`` is ``z / fx``."""
     depth = np.asarray(depth, dtype=np.float64)
-    return grid_faces(depth, depth / float(np.asarray(K)[0, 0]), a)
+    return grid_faces(depth, depth / float(np.asarray(K)[0, 0]), a, compiled)
+
+
+def depth_surface(t: np.ndarray, depth_scale: np.ndarray, label: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray,
+                  shape: tuple[int, int], a: float, compiled: bool | None = None,
+                  threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh of the ray hits of a pinhole camera's pixels (row-major): their planar depth
+    ``t * depth_scale`` triangulated (:func:`perspective_faces`), the points of the pixels
+    the faces use (:func:`perspective_points`, :func:`compact`) and a label per face.
+
+    t, depth_scale : (H*W,) float  distance along each pixel's ray (NaN = no vertex) and
+                                   planar depth per unit distance (:meth:`Camera.rays`)
+    label          : (H*W,) int32  per pixel; each face gets its first corner pixel's
+    shape          : (H, W)
+    compiled       : as for :func:`grid_faces`. Compiled, it is one kernel that writes each
+                     output once, several times faster than these steps (their glue over
+                     fresh whole-image arrays cost more than the steps); the steps in numpy
+                     (False) are the reference, and the tests hold the two equal bit for bit
+    threads        : threads the compiled kernel may use (the arrays do not depend on it)
+
+    Returns vertices (k, 3) float64, faces (m, 3) int32 and label (m,) int32.
+    """
+    h, w = shape
+    t = np.asarray(t, dtype=np.float64)
+    depth_scale = np.asarray(depth_scale, dtype=np.float64)
+    label = np.asarray(label, dtype=np.int32)
+    K = np.asarray(K, dtype=np.float64)
+    pose = np.asarray(cam_to_world, dtype=np.float64)
+    if COMPILED if compiled is None else compiled:
+        if _compiled_depth_surface is None:
+            raise RuntimeError("the compiled depth_surface needs sceneforge's Embree extension, which is not built")
+        vertices, faces, face_label = _compiled_depth_surface(
+            np.ascontiguousarray(t), np.ascontiguousarray(depth_scale), np.ascontiguousarray(label),
+            _pixel_rays(K.tobytes(), h, w), np.ascontiguousarray(pose[:3, :3]), np.ascontiguousarray(pose[:3, 3]),
+            h, w, float(K[0, 0]), float(a), float(a) * math.sqrt(2.0), int(threads))
+        return (np.frombuffer(vertices, dtype=np.float64).reshape(-1, 3),
+                np.frombuffer(faces, dtype=np.int32).reshape(-1, 3), np.frombuffer(face_label, dtype=np.int32))
+    depth = (t * depth_scale).reshape(shape)
+    pixels = perspective_faces(depth, K, a, compiled)
+    vertices, faces = compact(perspective_points(depth, K, pose).reshape(-1, 3), pixels, compiled)
+    return vertices, faces.astype(np.int32), label[pixels[:, 0]]

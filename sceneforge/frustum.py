@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from .conventions import ENVELOPE_LAYER, tol
-from .depth_mesh import compact, perspective_faces, perspective_points
+from .depth_mesh import depth_surface
 
 try:
     from .raytrace._embree import face_classes as _compiled_face_classes
@@ -779,7 +779,8 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
     return meshes
 
 
-def envelope_surface(tracer: "HouseTracer", camera: "Camera", config: ViewMeshConfig | None = None) -> ClippedMesh:
+def envelope_surface(tracer: "HouseTracer", camera: "Camera", config: ViewMeshConfig | None = None,
+                     compiled: bool | None = None) -> ClippedMesh:
     """The envelope's ground truth of a view (SPEC §5): the D5 layer as a surface.
 
     D5 (each ray's first envelope hit, a first-hit query) is traced from ``camera`` at
@@ -788,16 +789,20 @@ def envelope_surface(tracer: "HouseTracer", camera: "Camera", config: ViewMeshCo
     ``config.envelope_a`` (:func:`sceneforge.depth_mesh.grid_faces`). Pixels whose ray
     leaves the house give no vertex. Each face's ``instance`` is the envelope instance
     its first corner pixel sees (the block's top-left pixel, or its top-right one).
+    ``compiled`` as for :func:`sceneforge.depth_mesh.depth_surface` (the same mesh).
     """
+    from .raytrace.embree_backend import every_core
+
     config = config or ViewMeshConfig()
     fine = camera.resized(round(camera.width * config.envelope_upscale),
                           round(camera.height * config.envelope_upscale))
     origins, directions, depth_scale = fine.rays()
     d5 = tracer.first_hit(origins, directions, instances=tracer.triangles.envelope)
-    depth = (d5.t * depth_scale).reshape(fine.shape)
-    pixels = perspective_faces(depth, fine.K, config.envelope_a)
-    vertices, faces = compact(perspective_points(depth, fine.K, fine.cam_to_world).reshape(-1, 3), pixels)
-    return ClippedMesh(vertices, faces.astype(np.int32), d5.instance[pixels[:, 0]])
+    # the tracer's threads, at most two: the compiled triangulation takes a few milliseconds,
+    # and more threads would cost about as much to start as they save
+    threads = min(2, tracer.threads or every_core())
+    return ClippedMesh(*depth_surface(d5.t, depth_scale, d5.instance, fine.K, fine.cam_to_world, fine.shape,
+                                      config.envelope_a, compiled, threads))
 
 
 def mesh_provenance(config: ViewMeshConfig, width: int, height: int) -> dict:

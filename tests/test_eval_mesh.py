@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
@@ -238,3 +240,125 @@ def test_compiled_compact_equals_the_numpy_one(seed):
     assert not np.shares_memory(got[0], points)
     with pytest.raises(IndexError):
         depth_mesh.compact(points, np.array([[0, 1, n]]), compiled=True)
+
+
+COMPILED_ONLY = pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
+
+
+def random_lens(rng, h: int, w: int) -> np.ndarray:
+    f = rng.uniform(20.0, 80.0)
+    return np.array([[f, rng.choice([0.0, 0.3]), rng.uniform(0, w)], [0.0, f * rng.uniform(0.9, 1.1), rng.uniform(0, h)],
+                     [0.0, 0.0, 1.0]])
+
+
+def random_pose(rng) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pose[:3, 3] = rng.normal(size=3) * 3
+    return pose
+
+
+def same_surface(t, depth_scale, label, K, pose, shape, a=15.0):
+    """depth_surface compiled (on 1 to 3 threads) and in numpy: the same arrays, byte for
+    byte (so NaN and -0 count), dtype and shape; returns the numpy one."""
+    want = depth_mesh.depth_surface(t, depth_scale, label, K, pose, shape, a, compiled=False)
+    for threads in (1, 2, 3):
+        got = depth_mesh.depth_surface(t, depth_scale, label, K, pose, shape, a, compiled=True, threads=threads)
+        for name, x, y in zip(("vertices", "faces", "label"), got, want):
+            assert x.dtype == y.dtype and x.shape == y.shape, name
+            assert x.tobytes() == y.tobytes(), name
+    assert want[0].dtype == np.float64 and want[1].dtype == want[2].dtype == np.int32
+    return want
+
+
+@COMPILED_ONLY
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_depth_surface_equals_the_numpy_steps_bit_for_bit(seed):
+    """Random depth maps with holes and depth jumps (steps and noise beyond the edge rule),
+    random cameras and labels: the fused kernel's vertices, faces and labels are those of
+    perspective_faces, perspective_points and compact, whatever its thread count."""
+    rng = np.random.default_rng(seed)
+    dropped = 0
+    for _ in range(8):
+        h, w = (int(x) for x in rng.integers(2, 90, 2))
+        t = 1.0 + rng.random((h, w)) * rng.choice([0.001, 0.3, 3.0])
+        t[:, int(rng.integers(0, w)):] += rng.choice([0.0, 0.05, 2.0])  # a step
+        t[rng.random((h, w)) < rng.choice([0.0, 0.1, 0.5])] = np.nan
+        t = t.ravel()
+        depth_scale = rng.uniform(0.5, 1.0, h * w)
+        label = rng.integers(-1, 40, h * w).astype(np.int32)
+        K, pose = random_lens(rng, h, w), random_pose(rng)
+        vertices, faces, _ = same_surface(t, depth_scale, label, K, pose, (h, w))
+        everything = depth_mesh.depth_surface(t, depth_scale, label, K, pose, (h, w), 1e300, compiled=False)
+        dropped += len(everything[1]) - len(faces)
+    assert dropped > 0  # the edge rule cut some triangles
+
+
+@COMPILED_ONLY
+@pytest.mark.parametrize("shape, holes", [
+    ((1, 1), 0.0), ((1, 9), 0.0), ((9, 1), 0.2), ((2, 2), 0.0), ((2, 2), 0.3), ((2, 9), 0.2), ((9, 2), 0.0),
+    ((7, 5), 1.0), ((40, 30), 0.0), ((3, 70_000), 0.1)])
+def test_compiled_depth_surface_at_edge_sizes(shape, holes):
+    """Rows or columns of one pixel (no blocks), a single block, no NaN, all NaN, and rows of
+    more blocks than the kernel's 16-bit shape counters hold."""
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    n = shape[0] * shape[1]
+    t = 2.0 + 0.01 * rng.random(n)
+    t[rng.random(n) < holes] = np.nan
+    K = np.array([[30.0, 0.0, shape[1] / 2], [0.0, 30.0, shape[0] / 2], [0.0, 0.0, 1.0]])
+    vertices, faces, label = same_surface(t, np.full(n, 0.9), np.arange(n, dtype=np.int32), K, random_pose(rng), shape)
+    blocks = (shape[0] - 1) * (shape[1] - 1)
+    if holes == 0.0:
+        assert len(vertices) == (n if blocks else 0) and len(faces) == 2 * blocks
+    if holes == 1.0:
+        assert len(vertices) == len(faces) == 0
+
+
+def fma(a: float, b: float, c: float) -> float:
+    """a * b + c rounded once (exact rational arithmetic, float() rounds to nearest)."""
+    return float(Fraction(a) * Fraction(b) + Fraction(c))
+
+
+@COMPILED_ONLY
+def test_depth_surface_points_round_as_numpy_matmul_does():
+    """The points are (rays * depth) @ R.T + T, whose rows numpy's OpenBLAS sums as
+    fma(a2, x2, fma(a1, x1, a0 x0)); the kernel repeats that. Checked here on the numpy side
+    exactly, and on inputs where plain a0 x0 + a1 x1 + a2 x2 and the reverse fma order round
+    differently: a kernel that rounded either way would fail the equality."""
+    rng = np.random.default_rng(11)
+    h, w = 30, 40
+    K, pose = random_lens(rng, h, w), random_pose(rng)
+    t = 2.0 + 0.001 * rng.random(h * w)  # smooth: every pixel is a vertex, in pixel order
+    depth_scale = rng.uniform(0.9, 0.9001, h * w)
+    vertices, _, _ = same_surface(t, depth_scale, np.zeros(h * w, dtype=np.int32), K, pose, (h, w))
+    assert len(vertices) == h * w
+    x = depth_mesh._pixel_rays(K.tobytes(), h, w).reshape(-1, 3) * (t * depth_scale)[:, None]
+    R, T = pose[:3, :3], pose[:3, 3]
+    sample = rng.choice(h * w, 300, replace=False)
+    forward = [[fma(R[j, 2], x[p, 2], fma(R[j, 1], x[p, 1], R[j, 0] * x[p, 0])) + T[j] for j in range(3)]
+               for p in sample]
+    reverse = [[fma(R[j, 0], x[p, 0], fma(R[j, 1], x[p, 1], R[j, 2] * x[p, 2])) + T[j] for j in range(3)]
+               for p in sample]
+    plain = (x[sample, None, 0] * R[:, 0] + x[sample, None, 1] * R[:, 1]) + x[sample, None, 2] * R[:, 2] + T
+    np.testing.assert_array_equal(vertices[sample], forward)
+    assert (np.array(reverse) != vertices[sample]).sum() > 10
+    assert (plain != vertices[sample]).sum() > 10
+
+
+@COMPILED_ONLY
+def test_depth_surface_zeros_keep_the_sign_numpy_matmul_gives():
+    """OpenBLAS sums each row from +0, so a zero point coordinate is +0 where a0 x0 first
+    could leave -0, which a -0 translation keeps: the camera at -0, rotation entries -0 and
+    depth 0, so that every product of some rows is -0."""
+    h, w = 4, 5
+    K = np.array([[10.0, 0.0, 2.0], [0.0, 10.0, 1.5], [0.0, 0.0, 1.0]])  # rays of either sign
+    pose = np.eye(4)
+    pose[:3, :3] = [[-1.0, -0.0, -0.0], [-0.0, -1.0, -0.0], [-0.0, -0.0, 1.0]]
+    pose[:3, 3] = -0.0
+    vertices, faces, _ = same_surface(np.zeros(h * w), np.ones(h * w), np.zeros(h * w, dtype=np.int32), K, pose,
+                                      (h, w))
+    assert len(vertices) == h * w and not vertices.any()
+    x = depth_mesh._pixel_rays(K.tobytes(), h, w).reshape(-1, 3) * 0.0
+    R = pose[:3, :3]
+    a0_first = (x[:, None, 0] * R[:, 0] + x[:, None, 1] * R[:, 1]) + x[:, None, 2] * R[:, 2] + pose[:3, 3]
+    assert (np.signbit(a0_first) != np.signbit(vertices)).any()

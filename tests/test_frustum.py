@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sceneforge import frustum
+from sceneforge import depth_mesh, frustum
 from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
 from sceneforge.conventions import tol
 from sceneforge.frustum import (
@@ -29,7 +29,7 @@ from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_ins
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.raytrace import HouseTracer
 
-from .conftest import box_instance
+from .conftest import BREAKFAST_ROOM, box_instance
 
 # Plane z >= 0 (unit normal +Z pointing inside).
 Z_PLANE = np.array([0.0, 0.0, 1.0, 0.0])
@@ -416,6 +416,46 @@ def test_envelope_surface_leaves_out_rays_that_leave_the_house():
     # 80 × 60 pixels; the wall fills columns 0..39 (x < 0 at depth 3 is u < 40 of 80).
     assert len(env.vertices) == 40 * 60 and env.vertices[:, 0].max() < 0
     assert env.area == pytest.approx(1.2 * 39 / 40 * 1.8 * 59 / 60)
+
+
+def assert_same_envelope(tracer, cam, config=None):
+    """envelope_surface by the fused kernel and by the numpy steps: the same arrays, byte
+    for byte (so NaN and -0 count), dtype and shape."""
+    got = envelope_surface(tracer, cam, config, compiled=True)
+    want = envelope_surface(tracer, cam, config, compiled=False)
+    for name in ("vertices", "faces", "instance"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes(), name
+    assert len(want.faces) > 0
+    return want
+
+
+@pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
+def test_compiled_envelope_surface_of_toy_houses_equals_the_numpy_steps():
+    # The small views of the tests above and four sampled 320×240 views of each toy house
+    # (its D5 traced at 480×360, as a render's; the kernel on two threads, which
+    # tests/test_eval_mesh.py shows makes no difference).
+    for house, cam, _ in toy_house_views():
+        assert_same_envelope(HouseTracer(house), cam)
+    for house in (load(source) for source in discover(BUNDLED_TOY)):
+        tracer = HouseTracer(house, threads=2)
+        cameras, _ = sample_cameras(house, 4, np.random.default_rng(0), CameraSamplerConfig(), tracer)
+        assert len(cameras) == 4
+        for cam in cameras:
+            assert_same_envelope(tracer, cam)
+
+
+@pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
+@pytest.mark.skipif(not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)")
+def test_compiled_envelope_surface_of_the_breakfast_room_equals_the_numpy_steps():
+    # Window openings: rays that leave the house, holes in D5.
+    house = load(BREAKFAST_ROOM)
+    tracer = HouseTracer(house)
+    sampler = CameraSamplerConfig(max_escape_fraction=0.5)
+    cameras, _ = sample_cameras(house, 3, np.random.default_rng(0), sampler, tracer)
+    assert len(cameras) == 3
+    for cam in cameras:
+        assert_same_envelope(tracer, cam)
 
 
 def test_view_mesh_config_is_checked():

@@ -22,10 +22,11 @@
 //
 // Kernels that read no scene live here too, as the one compiled part of sceneforge: the
 // layer rules of SPEC 4 (sceneforge.layers.apply_rules), the depth -> triangles block rule
-// and compaction (sceneforge.depth_mesh.grid_faces, compact) and the frustum's per-vertex
-// and per-face tests and the renumbering of the kept faces (sceneforge.frustum._vertex_codes,
-// _face_classes, _weld_pieces). Each repeats its numpy reference operation for operation;
-// the tests hold them equal bit for bit.
+// and compaction (sceneforge.depth_mesh.grid_faces, compact, and both fused with the
+// pixels' points in depth_surface) and the frustum's per-vertex and per-face tests and the
+// renumbering of the kept faces (sceneforge.frustum._vertex_codes, _face_classes,
+// _weld_pieces). Each repeats its numpy reference operation for operation; the tests hold
+// them equal bit for bit.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -1228,6 +1229,72 @@ inline bool jump(double di, double dj, double fi, double fj, double a) {
     return std::fabs(di - dj) > near;
 }
 
+// The block corners 0 = (r, c), 1 = (r, c+1), 2 = (r+1, c), 3 = (r+1, c+1) and the four
+// triangle shapes (0 2 1), (0 3 1), (0 2 3), (1 2 3), as in depth_mesh._TRIANGLES
+constexpr int kBlockTriangles[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
+// The corners (bit k: corner k) a block's kept triangles use, by its shape bits
+constexpr uint8_t kShapeCorners[16] = {0, 0b0111, 0b1011, 15, 0b1101, 15, 15, 15, 0b1110, 15, 15, 15, 15, 15, 15, 15};
+// A block's shape bits spread into four 16-bit counters
+constexpr uint64_t spread_shapes(unsigned e) {
+    return (e & 1) | (uint64_t(e >> 1 & 1) << 16) | (uint64_t(e >> 2 & 1) << 32) | (uint64_t(e >> 3 & 1) << 48);
+}
+constexpr uint64_t kShapeCounters[16] = {
+    spread_shapes(0),  spread_shapes(1),  spread_shapes(2),  spread_shapes(3),  spread_shapes(4),  spread_shapes(5),
+    spread_shapes(6),  spread_shapes(7),  spread_shapes(8),  spread_shapes(9),  spread_shapes(10), spread_shapes(11),
+    spread_shapes(12), spread_shapes(13), spread_shapes(14), spread_shapes(15)};
+
+// Which pixels of a row of w depths d (footprints f) are vertices (finite), and the edge
+// rule between each and its right neighbour.
+void row_edges(const double* __restrict d, const double* __restrict f, int64_t w, double a, uint8_t* __restrict ok,
+               uint8_t* __restrict across) {
+    for (int64_t c = 0; c < w; ++c) ok[c] = std::fabs(d[c]) <= std::numeric_limits<double>::max();
+    for (int64_t c = 0; c + 1 < w; ++c) across[c] = jump(d[c], d[c + 1], f[c], f[c + 1], a);
+}
+
+// One row of 2x2 blocks between pixel rows 0 and 1 of w pixels (depths d, footprints f,
+// row_edges ok and across h): the shapes each block keeps (bit s: shape s) into `row`, their
+// counts added to `count`, and into `up` and `down` the corners by which the blocks below
+// (row 0's pixels) and above (row 1's) use each pixel. The block rule and the edge rule
+// without a branch (which diagonal splits a block is often noise): every edge rule of the
+// block, then the shapes of its vertices, less those with an edge that jumps.
+void block_row(const double* __restrict d0, const double* __restrict f0, const uint8_t* __restrict ok0,
+               const uint8_t* __restrict h0, const double* __restrict d1, const double* __restrict f1,
+               const uint8_t* __restrict ok1, const uint8_t* __restrict h1, int64_t w, double a, double diagonal_a,
+               uint8_t* __restrict row, uint8_t* __restrict up, uint8_t* __restrict down, int64_t* count) {
+    uint64_t counters = 0;  // 16 bits per shape, added to count every 65535 blocks
+    int budget = 65535;
+    unsigned left = 0;  // the corners block c - 1 uses
+    for (int64_t c = 0; c + 1 < w; ++c) {
+        const unsigned j01 = h0[c], j23 = h1[c];
+        const unsigned j02 = jump(d0[c], d1[c], f0[c], f1[c], a);
+        const unsigned j13 = jump(d0[c + 1], d1[c + 1], f0[c + 1], f1[c + 1], a);
+        const unsigned j03 = jump(d0[c], d1[c + 1], f0[c], f1[c + 1], diagonal_a);
+        const unsigned j12 = jump(d0[c + 1], d1[c], f0[c + 1], f1[c], diagonal_a);
+        const bool along_03 = std::fabs(d0[c] - d1[c + 1]) < std::fabs(d0[c + 1] - d1[c]);
+        const unsigned ok = ok0[c] | ok0[c + 1] << 1 | ok1[c] << 2 | ok1[c + 1] << 3;
+        // four vertices: split along the diagonal whose corners differ less; three (corner
+        // k missing): the triangle of those, shape 3 - k
+        const unsigned missing = ~ok & 15u;
+        const unsigned three = (missing & 1) << 3 | (missing & 2) << 1 | (missing & 4) >> 1 | (missing & 8) >> 3;
+        const unsigned shapes = ok == 15 ? (along_03 ? 2u | 4u : 1u | 8u) : (missing & (missing - 1)) == 0 ? three : 0u;
+        const unsigned jumps = (j01 | j02 | j12) | (j01 | j03 | j13) << 1 | (j02 | j03 | j23) << 2 | (j12 | j13 | j23) << 3;
+        const unsigned e = shapes & ~jumps;
+        row[c] = static_cast<uint8_t>(e);
+        counters += kShapeCounters[e];
+        if (--budget == 0) {
+            for (int s = 0; s < 4; ++s) count[s] += static_cast<int64_t>(counters >> (16 * s) & 0xFFFF);
+            counters = 0, budget = 65535;
+        }
+        const unsigned corners = kShapeCorners[e];
+        up[c] = static_cast<uint8_t>((corners & 1) | (left & 2));
+        down[c] = static_cast<uint8_t>((corners & 4) | (left & 8));
+        left = corners;
+    }
+    up[w - 1] = static_cast<uint8_t>(left & 2);
+    down[w - 1] = static_cast<uint8_t>(left & 8);
+    for (int s = 0; s < 4; ++s) count[s] += static_cast<int64_t>(counters >> (16 * s) & 0xFFFF);
+}
+
 // grid_faces(depth (h,w) f8, footprint (h,w) f8, a, diagonal_a) -> bytearray (m,3) i8:
 // sceneforge.depth_mesh.grid_faces in one pass per block shape, the same triangles in the
 // same order (every triangle of the first shape, blocks in row-major order, then the
@@ -1246,49 +1313,23 @@ PyObject* grid_faces(PyObject*, PyObject* args) {
     // pass 1 decides every block (a bit per triangle shape it keeps), pass 2 writes the
     // faces straight into the result, shape by shape
     std::vector<uint8_t> shape_of(h >= 2 && w >= 2 ? (h - 1) * (w - 1) : 0);
-    size_t counts[4] = {0, 0, 0, 0};
-    static const int tris[4][3] = {{0, 2, 1}, {0, 3, 1}, {0, 2, 3}, {1, 2, 3}};
+    int64_t counts[4] = {0, 0, 0, 0};
     Py_BEGIN_ALLOW_THREADS
     if (h >= 2 && w >= 2) {
-        // the block corners 0 = (r, c), 1 = (r, c+1), 2 = (r+1, c), 3 = (r+1, c+1); the four
-        // triangles (0 2 1), (0 3 1), (0 2 3), (1 2 3), as in depth_mesh._TRIANGLES
-        for (Py_ssize_t r = 0; r + 1 < h; ++r)
-            for (Py_ssize_t c = 0; c + 1 < w; ++c) {
-                const int64_t p[4] = {r * w + c, r * w + c + 1, (r + 1) * w + c, (r + 1) * w + c + 1};
-                double d[4], f[4];
-                bool ok[4];
-                int n_ok = 0;
-                for (int k = 0; k < 4; ++k) {
-                    d[k] = D[p[k]], f[k] = P[p[k]];
-                    ok[k] = std::isfinite(d[k]);
-                    n_ok += ok[k];
-                }
-                uint8_t emit = 0;
-                if (n_ok == 4) {
-                    const bool along_03 = std::fabs(d[0] - d[3]) < std::fabs(d[1] - d[2]);
-                    emit = along_03 ? (2 | 4) : (1 | 8);
-                } else if (n_ok == 3) {
-                    emit = !ok[3] ? 1 : !ok[2] ? 2 : !ok[1] ? 4 : 8;
-                }
-                if (!emit) continue;
-                for (int s = 0; s < 4; ++s) {
-                    if (!(emit & (1 << s))) continue;
-                    for (int k = 0; k < 3; ++k) {
-                        int i = tris[s][k], j = tris[s][(k + 1) % 3];
-                        if (i > j) std::swap(i, j);
-                        const bool diagonal = (i == 0 && j == 3) || (i == 1 && j == 2);
-                        if (jump(d[i], d[j], f[i], f[j], diagonal ? diagonal_a : a)) {
-                            emit &= static_cast<uint8_t>(~(1 << s));
-                            break;
-                        }
-                    }
-                }
-                shape_of[r * (w - 1) + c] = emit;
-                for (int s = 0; s < 4; ++s) counts[s] += (emit >> s) & 1;
-            }
+        // row_edges of rows r and r + 1; the corners block_row finds are not needed here
+        std::vector<uint8_t> flags(6 * w);
+        uint8_t *ok0 = flags.data(), *h0 = ok0 + w, *ok1 = h0 + w, *h1 = ok1 + w, *unused = h1 + w;
+        row_edges(D, P, w, a, ok0, h0);
+        for (Py_ssize_t r = 0; r + 1 < h; ++r) {
+            row_edges(D + (r + 1) * w, P + (r + 1) * w, w, a, ok1, h1);
+            block_row(D + r * w, P + r * w, ok0, h0, D + (r + 1) * w, P + (r + 1) * w, ok1, h1, w, a, diagonal_a,
+                      &shape_of[r * (w - 1)], unused, unused + w, counts);
+            std::swap(ok0, ok1);
+            std::swap(h0, h1);
+        }
     }
     Py_END_ALLOW_THREADS
-    const size_t m = counts[0] + counts[1] + counts[2] + counts[3];
+    const int64_t m = counts[0] + counts[1] + counts[2] + counts[3];
     PyObject* out = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(3 * m * sizeof(int64_t)));
     if (!out) return nullptr;
     int64_t* faces = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out));
@@ -1305,7 +1346,7 @@ PyObject* grid_faces(PyObject*, PyObject* args) {
             const int64_t top_left = r * w + c;
             for (int s = 0; s < 4; ++s) {
                 if (!(emit & (1 << s))) continue;
-                for (int v = 0; v < 3; ++v) *cursor[s]++ = top_left + offset[tris[s][v]];
+                for (int v = 0; v < 3; ++v) *cursor[s]++ = top_left + offset[kBlockTriangles[s][v]];
             }
         }
     }
@@ -1346,6 +1387,200 @@ PyObject* compact_faces(PyObject*, PyObject* args) {
         if (renumber[p] >= 0) used[renumber[p]] = p;
     for (Py_ssize_t i = 0; i < m3; ++i) out[i] = renumber[F[i]];
     return Py_BuildValue("(NN)", used_b, faces_b);
+}
+
+// ------------------------------------------------------------------ depth -> envelope surface
+
+// One element of `x @ M.T` as numpy's float64 matmul computes it for (n, 3) @ (3, 3)
+// (OpenBLAS's kernels): the sum starts at +0 and takes the three products by fused
+// multiply-adds in k order. A zero is then +0 whatever the signs, where a0 * x0 first (as
+// matmul_row3) may leave -0: only a -0 added after would show it.
+__attribute__((always_inline)) inline double blas_row3(double a0, double a1, double a2, double x0, double x1, double x2) {
+    return std::fma(a2, x2, std::fma(a1, x1, std::fma(a0, x0, 0.0)));
+}
+
+// The world points of the pixels in [begin, end) the surface uses (up | down), in pixel
+// order from `out`: sceneforge.depth_mesh.perspective_points' (rays * depth) @ R.T + T with
+// depth = t * scale. Compiled twice like vertex_codes_loop: the same bits either way.
+__attribute__((always_inline)) inline void surface_points_loop(const double* t, const double* scale,
+                                                               const double* rays, const double* R, const double* T,
+                                                               const uint8_t* up, const uint8_t* down, int64_t begin,
+                                                               int64_t end, double* out) {
+    for (int64_t p = begin; p < end; ++p) {
+        if (!(up[p] | down[p])) continue;
+        const double depth = t[p] * scale[p];
+        const double x0 = rays[3 * p] * depth, x1 = rays[3 * p + 1] * depth, x2 = rays[3 * p + 2] * depth;
+        for (int j = 0; j < 3; ++j) *out++ = blas_row3(R[3 * j], R[3 * j + 1], R[3 * j + 2], x0, x1, x2) + T[j];
+    }
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+__attribute__((target("fma"))) void surface_points_fma(const double* t, const double* scale, const double* rays,
+                                                        const double* R, const double* T, const uint8_t* up,
+                                                        const uint8_t* down, int64_t begin, int64_t end, double* out) {
+    surface_points_loop(t, scale, rays, R, T, up, down, begin, end, out);
+}
+#endif
+
+void surface_points_plain(const double* t, const double* scale, const double* rays, const double* R, const double* T,
+                          const uint8_t* up, const uint8_t* down, int64_t begin, int64_t end, double* out) {
+    surface_points_loop(t, scale, rays, R, T, up, down, begin, end, out);
+}
+
+// depth_surface(t (n,) f8, scale (n,) f8, label (n,) i4, rays (n,3) f8, rot (3,3) f8,
+//               translation (3,) f8, h, w, fx, a, diagonal_a, threads)
+//   -> (vertices (k,3) f8, faces (m,3) i4, label (m,) i4) bytearrays
+//
+// sceneforge.depth_mesh.depth_surface: what grid_faces, perspective_points and compact
+// make of the depth t * scale (footprint depth / fx), the faces as int32 and each face's
+// label that of its first corner pixel, every output written once and no int64 face
+// array. Pixel rows in chunks, four passes: the blocks' shapes and the pixels they use
+// (depth and footprint computed row by row, elementwise as numpy does), then the vertices
+// in pixel order, then the faces (shape by shape, blocks in row-major order). Each chunk's
+// place in the outputs follows from the counts of the chunks before it, so the arrays do
+// not depend on `threads`.
+PyObject* depth_surface(PyObject*, PyObject* args) {
+    PyObject *to, *so, *lo, *ro, *rto, *tro;
+    Py_ssize_t h, w;
+    double fx, a, diagonal_a;
+    int threads;
+    if (!PyArg_ParseTuple(args, "OOOOOOnndddi", &to, &so, &lo, &ro, &rto, &tro, &h, &w, &fx, &a, &diagonal_a,
+                          &threads))
+        return nullptr;
+    if (h < 0 || w < 0 || h * w > std::numeric_limits<int32_t>::max()) {
+        PyErr_SetString(PyExc_ValueError, "depth_surface: h and w must be >= 0, h * w below 2**31");
+        return nullptr;
+    }
+    const int64_t n = static_cast<int64_t>(h) * w;
+    Buffer bt, bs, bl, br, brt, btr;
+    if (!get_buffer(to, bt, sizeof(double), n, "t") || !get_buffer(so, bs, sizeof(double), n, "scale") ||
+        !get_buffer(lo, bl, sizeof(int32_t), n, "label") || !get_buffer(ro, br, 3 * sizeof(double), n, "rays") ||
+        !get_buffer(rto, brt, sizeof(double), 9, "rot") || !get_buffer(tro, btr, sizeof(double), 3, "translation"))
+        return nullptr;
+    const double* t = static_cast<const double*>(bt.view.buf);
+    const double* scale = static_cast<const double*>(bs.view.buf);
+    const int32_t* label = static_cast<const int32_t*>(bl.view.buf);
+    const double* rays = static_cast<const double*>(br.view.buf);
+    const double* R = static_cast<const double*>(brt.view.buf);
+    const double* T = static_cast<const double*>(btr.view.buf);
+    const bool blocks = h >= 2 && w >= 2;
+    const int64_t bw = blocks ? w - 1 : 0, bh = blocks ? h - 1 : 0;
+    // chunks of block rows, about 16k blocks each; chunk k's pixels are the rows its
+    // blocks start in, and the image's last row for the last chunk
+    const int64_t rows = std::max<int64_t>(1, 16384 / std::max<int64_t>(1, w));
+    const int64_t n_chunks = blocks ? (bh + rows - 1) / rows : 0;
+    auto first_row = [&](int64_t k) { return std::min(k * rows, bh); };
+    auto pixel_end = [&](int64_t k) { return k + 1 == n_chunks ? n : first_row(k + 1) * w; };
+    // emit: the shapes each block keeps; up, down: the corners by which the blocks below
+    // and above each pixel use it (zero in the first and last rows)
+    std::vector<uint8_t> emit(bh * bw), up(blocks ? n : 0), down(blocks ? n : 0);
+    std::vector<int64_t> shape_count(4 * n_chunks), used_count(n_chunks);
+    std::vector<int32_t> number(blocks ? n : 0);  // of each used pixel's vertex
+    auto count_used = [&](int64_t r) {
+        int64_t count = 0;
+        for (int64_t p = r * w; p < (r + 1) * w; ++p) count += (up[p] | down[p]) != 0;
+        return count;
+    };
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks(n_chunks, threads, [&](int64_t k) {
+        // pixel rows r and r + 1: depth, footprint, row_edges
+        std::vector<double> values(4 * w);
+        std::vector<uint8_t> flags(4 * w);
+        double *d0 = values.data(), *f0 = d0 + w, *d1 = f0 + w, *f1 = d1 + w;
+        uint8_t *ok0 = flags.data(), *h0 = ok0 + w, *ok1 = h0 + w, *h1 = ok1 + w;
+        auto fill = [&](int64_t r, double* d, double* f, uint8_t* ok, uint8_t* across) {
+            for (int64_t c = 0; c < w; ++c) {
+                d[c] = t[r * w + c] * scale[r * w + c];
+                f[c] = d[c] / fx;
+            }
+            row_edges(d, f, w, a, ok, across);
+        };
+        int64_t* count = &shape_count[4 * k];
+        int64_t n_used = 0;
+        fill(first_row(k), d0, f0, ok0, h0);
+        for (int64_t r = first_row(k); r < first_row(k + 1); ++r) {
+            fill(r + 1, d1, f1, ok1, h1);
+            block_row(d0, f0, ok0, h0, d1, f1, ok1, h1, w, a, diagonal_a, &emit[r * bw], &up[r * w],
+                      &down[(r + 1) * w], count);
+            // pixel row r is complete unless the chunk before has the blocks above it (then
+            // it is counted below); the image's last row has no blocks below
+            if (r > first_row(k)) n_used += count_used(r);
+            if (r + 1 == bh) n_used += count_used(r + 1);
+            std::swap(d0, d1);
+            std::swap(f0, f1);
+            std::swap(ok0, ok1);
+            std::swap(h0, h1);
+        }
+        used_count[k] = n_used;
+    });
+    for (int64_t k = 0; k < n_chunks; ++k) used_count[k] += count_used(first_row(k));
+    Py_END_ALLOW_THREADS
+    // where each chunk's vertices, and its triangles of each shape, begin
+    std::vector<int64_t> vertex_at(n_chunks + 1, 0), face_at(4 * n_chunks);
+    int64_t m = 0;
+    for (int64_t k = 0; k < n_chunks; ++k) vertex_at[k + 1] = vertex_at[k] + used_count[k];
+    for (int s = 0; s < 4; ++s)
+        for (int64_t k = 0; k < n_chunks; ++k) {
+            face_at[4 * k + s] = m;
+            m += shape_count[4 * k + s];
+        }
+    PyObject* vertices_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(3 * vertex_at[n_chunks] * sizeof(double)));
+    PyObject* faces_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(3 * m * sizeof(int32_t)));
+    PyObject* label_b = PyByteArray_FromStringAndSize(nullptr, static_cast<Py_ssize_t>(m * sizeof(int32_t)));
+    if (!vertices_b || !faces_b || !label_b) {
+        Py_XDECREF(vertices_b);
+        Py_XDECREF(faces_b);
+        Py_XDECREF(label_b);
+        return nullptr;
+    }
+    double* V = reinterpret_cast<double*>(PyByteArray_AS_STRING(vertices_b));
+    int32_t* F = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(faces_b));
+    int32_t* L = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(label_b));
+    Py_BEGIN_ALLOW_THREADS
+#if defined(__x86_64__) && defined(__GNUC__)
+    const bool fma = __builtin_cpu_supports("fma");
+#endif
+    parallel_blocks(n_chunks, threads, [&](int64_t k) {
+        const int64_t begin = first_row(k) * w, end = pixel_end(k);
+        int32_t next = static_cast<int32_t>(vertex_at[k]);
+        for (int64_t p = begin; p < end; ++p)
+            if (up[p] | down[p]) number[p] = next++;
+        double* out = V + 3 * vertex_at[k];
+#if defined(__x86_64__) && defined(__GNUC__)
+        if (fma) surface_points_fma(t, scale, rays, R, T, up.data(), down.data(), begin, end, out);
+        else
+#endif
+            surface_points_plain(t, scale, rays, R, T, up.data(), down.data(), begin, end, out);
+    });
+    parallel_blocks(n_chunks, threads, [&](int64_t k) {
+        int64_t at[4];  // where chunk k's next triangle of each shape goes
+        for (int s = 0; s < 4; ++s) at[s] = face_at[4 * k + s];
+        // A block keeps shapes of one diagonal's pair only, 0 and 3 or 1 and 2: both of the
+        // pair are written for every block, one it does not keep into a scratch face, with
+        // no branch on the diagonal.
+        int32_t scratch[4];
+        for (int64_t r = first_row(k); r < first_row(k + 1); ++r)
+            for (int64_t c = 0; c < bw; ++c) {
+                const unsigned e = emit[r * bw + c];
+                if (!e) continue;
+                const int64_t p = r * w + c;
+                const int32_t n0 = number[p], n1 = number[p + 1], n2 = number[p + w], n3 = number[p + w + 1];
+                const bool split_03 = (e & 6) != 0;
+                // (0 2 1) or (0 3 1), then (1 2 3) or (0 2 3)
+                const int s0 = split_03 ? 1 : 0, s1 = split_03 ? 2 : 3;
+                const unsigned keep0 = e >> s0 & 1, keep1 = e >> s1 & 1;
+                int32_t* face = keep0 ? F + 3 * at[s0] : scratch;
+                face[0] = n0, face[1] = split_03 ? n3 : n2, face[2] = n1;
+                *(keep0 ? L + at[s0] : scratch + 3) = label[p];
+                at[s0] += keep0;
+                face = keep1 ? F + 3 * at[s1] : scratch;
+                face[0] = split_03 ? n0 : n1, face[1] = n2, face[2] = n3;
+                *(keep1 ? L + at[s1] : scratch + 3) = label[split_03 ? p : p + 1];
+                at[s1] += keep1;
+            }
+    });
+    Py_END_ALLOW_THREADS
+    return Py_BuildValue("(NNN)", vertices_b, faces_b, label_b);
 }
 
 // ------------------------------------------------------------------ frustum: settling faces
@@ -1582,6 +1817,9 @@ PyMethodDef module_methods[] = {
     {"compact_faces", compact_faces, METH_VARARGS,
      "compact_faces(faces, n_pixels) -> (used pixels, renumbered faces) int64 (bytes), as "
      "sceneforge.depth_mesh.compact"},
+    {"depth_surface", depth_surface, METH_VARARGS,
+     "depth_surface(t, scale, label, rays, rot, translation, h, w, fx, a, diagonal_a, threads) -> (vertices "
+     "float64, faces int32, label int32) (bytes), as sceneforge.depth_mesh.depth_surface"},
     {nullptr, nullptr, 0, nullptr},
 };
 
