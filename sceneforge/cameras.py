@@ -115,8 +115,11 @@ class Camera:
     @cached_property
     def _rays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         d_cam, depth_scale = _pixel_directions(self.K.tobytes(), self.width, self.height)
+        from .raytrace import checked_directions
+
         directions = d_cam @ self.cam_to_world[:3, :3].T
         directions.flags.writeable = False
+        checked_directions(directions)  # unit and finite: the tracers need not scan them again
         origins = np.broadcast_to(self.cam_to_world[:3, 3], directions.shape)
         return origins, directions, depth_scale
 

@@ -444,3 +444,28 @@ def test_embree_engine_serves_several_python_threads():
         together = list(pool.map(lambda m: shared.all_hits(origins, directions, instances=m), masks))
     for a, b in zip(alone, together):
         assert_same_hits(a, b)
+
+
+def test_camera_directions_skip_the_full_scan_and_nothing_else_does():
+    """A camera's directions are unit and finite by construction, so the tracers check
+    their first row only; any other array (a copy, or the same array made writeable again
+    and changed) is scanned in full."""
+    from sceneforge.cameras import look_at_camera
+    from sceneforge.raytrace import checked_directions
+
+    camera = look_at_camera([0, 1, 0], [0, 0, 1], width=8, height=6)
+    origins, directions, _ = camera.rays()
+    Rays.check(origins, directions)
+    bad = directions.copy()
+    bad[5] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        Rays.check(origins, bad)
+    bad[5] = [0, 0, 2]
+    with pytest.raises(ValueError, match="unit"):
+        Rays.check(origins, bad)
+    directions.flags.writeable = True
+    directions[5] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        Rays.check(origins, directions)
+    with pytest.raises(ValueError, match="read-only"):
+        checked_directions(np.zeros((2, 3)))

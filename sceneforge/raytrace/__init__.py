@@ -34,6 +34,7 @@ does): the plane-distance terms are then computed once per face instead of per h
 from __future__ import annotations
 
 import os
+import weakref
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -220,11 +221,12 @@ class Rays:
 
     @classmethod
     def check(cls, origins, directions) -> "Rays":
+        trusted = _CHECKED.get(id(directions)) is directions and not directions.flags.writeable
         o, o_shared = _ray_rows(origins, "origins")
-        d, d_shared = _ray_rows(directions, "directions")
+        d, d_shared = _ray_rows(directions, "directions", checked=trusted)
         if d.shape != o.shape:
             raise ValueError(f"origins and directions must both be (n, 3), got {o.shape} and {d.shape}")
-        unit = d[:1] if d_shared else d
+        unit = d[:1] if d_shared or trusted else d
         if len(d) and np.abs(np.einsum("ij,ij->i", unit, unit) - 1.0).max() > 2e-6:
             raise ValueError("ray directions must be unit vectors")
         # rows given in full may still all be the same (the last row decides most cases)
@@ -237,14 +239,30 @@ class Rays:
         return len(self.origins)
 
 
-def _ray_rows(a, name: str) -> tuple[np.ndarray, bool]:
+#: read-only direction arrays made by :meth:`sceneforge.cameras.Camera.rays` (unit and finite
+#: by construction: a validated pose's rotation of cached unit pixel directions), which
+#: :meth:`Rays.check` then checks by their first row only; keyed by id, dropped with them
+_CHECKED: "weakref.WeakValueDictionary[int, np.ndarray]" = weakref.WeakValueDictionary()
+
+
+def checked_directions(directions: np.ndarray) -> np.ndarray:
+    """Mark ``directions`` (a read-only (n, 3) float64 array of unit vectors that sceneforge
+    made) as checked, and return it."""
+    if directions.flags.writeable or directions.dtype != np.float64:
+        raise ValueError("only read-only float64 directions can be marked checked")
+    _CHECKED[id(directions)] = directions
+    return directions
+
+
+def _ray_rows(a, name: str, checked: bool = False) -> tuple[np.ndarray, bool]:
     """``a`` as (n, 3) float64, checked finite, and whether it is one row broadcast (then
-    it is kept as the broadcast and only that row is checked)."""
+    it is kept as the broadcast and only that row is checked; ``checked``: also only that
+    row, :func:`checked_directions`)."""
     a = np.asarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"ray {name} must be (n, 3), got {a.shape}")
     shared = len(a) > 0 and a.strides[0] == 0
-    if not np.isfinite(a[:1] if shared else a).all():
+    if not np.isfinite(a[:1] if shared or checked else a).all():
         raise ValueError("ray origins and directions must be finite")
     return (a if shared else np.ascontiguousarray(a)), shared
 

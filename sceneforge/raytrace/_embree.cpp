@@ -639,8 +639,13 @@ void nearest_faces_packed(const EngineObject* e, const std::vector<const Scene*>
                 ties.tie[j] = false;
                 ties.geom[j] = rh.hit.geomID[j], ties.prim[j] = rh.hit.primID[j];
                 const float t = hit ? rh.ray.tfar[j] : 0.0f;
-                set_lane(probe, j, e, rays.origin(ray(j)), rays.direction(ray(j)), t * (1.0f - kTieWindow),
-                         t * (1.0f + kTieWindow));
+                probe.ray.org_x[j] = rh.ray.org_x[j], probe.ray.org_y[j] = rh.ray.org_y[j];
+                probe.ray.org_z[j] = rh.ray.org_z[j], probe.ray.dir_x[j] = rh.ray.dir_x[j];
+                probe.ray.dir_y[j] = rh.ray.dir_y[j], probe.ray.dir_z[j] = rh.ray.dir_z[j];
+                probe.ray.tnear[j] = t * (1.0f - kTieWindow), probe.ray.tfar[j] = t * (1.0f + kTieWindow);
+                probe.ray.mask[j] = 0xFFFFFFFFu, probe.ray.flags[j] = 0, probe.ray.time[j] = 0.0f;
+                probe.ray.id[j] = static_cast<unsigned int>(j);
+                probe.hit.geomID[j] = RTC_INVALID_GEOMETRY_ID, probe.hit.instID[0][j] = RTC_INVALID_GEOMETRY_ID;
             }
             if (any) Packet<K>::intersect(again, s->scene, &probe, &ties.base, tie_filter);
             for (int j = 0; j < lanes; ++j) {
@@ -921,6 +926,10 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
             HitRecord* hits = blk.hits.data() + h;
             h += count;
             if (count == 0) continue;
+            if (count == 1) {  // nothing to order or merge (most rays of a view)
+                blk.hits[written++] = hits[0];
+                continue;
+            }
             keyed.resize(count);
             for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
             // hits equal in (key, face) are the same record, so every sort by (key, face)
