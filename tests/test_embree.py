@@ -113,8 +113,8 @@ def test_views_agree_with_the_open3d_engine(source, monkeypatch):
     or 4.x). Where a ray meets two triangles at exactly the same float32 distance (an
     edge-on ray at a wall's corner, coincident faces), each names the one its traversal
     meets first, and the builds' traversal orders differ on some CPUs: on an AVX-512
-    machine one D5 vertex of 518,400 in these views differs by 2.4e-7 m (two faces tied at
-    a wall-floor edge), on an AVX2 machine none. Everything the extension computes beyond
+    Xeon one D5 vertex of 518,400 in these views differs by 2.4e-7 m (two faces tied at
+    a wall-floor edge), on the AMD EPYC of earlier runs none. Everything the extension computes beyond
     the raw engine answers is held bit-identical to numpy above."""
     house = load(source)
     ours, theirs = HouseTracer(house, "embree"), HouseTracer(house, "open3d")

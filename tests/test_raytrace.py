@@ -384,8 +384,9 @@ def test_embree_engine_keeps_one_of_coincident_faces_as_open3d_does():
     the other, so its hit names one of them where the reference (which reports both and
     keeps the lower index) may name the other; the extension keeps Open3D's rule: the same
     hits at the same distances, of the same instances. Which of two coincident faces each
-    names depends on its Embree build's traversal order, the same on an AVX2 machine but
-    not on an AVX-512 one; where they part, the two faces lie in one plane."""
+    names depends on its Embree build's traversal order, the same for both on the AMD EPYC
+    of earlier runs but not on an AVX-512 Xeon; where they part, the two faces lie in one
+    plane."""
     house = load(discover(BUNDLED_TOY)[0])
     tracer = HouseTracer(house, "embree")
     camera = sample_cameras(house, 1, np.random.default_rng(0), CameraSamplerConfig(width=80, height=60), tracer)[0][0]

@@ -15,7 +15,9 @@
 //     first-hit pass, plus slack), and hits beyond `cutoff` are dropped;
 //   * per ray, hits are sorted by the same float key `_order_by_ray_and_distance` uses,
 //     then by face, and same-instance repeats are dropped as `_same_instance_repeats` does;
-//   * the CSR arrays of `Hits` are written directly.
+//   * the CSR arrays of `Hits` are written directly;
+//   * first hits (closing passes, D5) in ray packets, naming the faces rtcIntersect1 names
+//     (see nearest_faces_packed).
 //
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
