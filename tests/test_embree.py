@@ -81,6 +81,17 @@ def sampled_views(house, tracers, n: int = 2):
     return cameras[0]
 
 
+def views_both_ways(house, ours, theirs, monkeypatch):
+    """(``ours``'s, ``theirs``'s) :func:`view_arrays` of each of :func:`sampled_views`, the
+    second with numpy layer rules and triangulation (as where the extension is missing)."""
+    for camera in sampled_views(house, (ours, theirs)):
+        got = view_arrays(compute_view(house, camera, ViewConfig(), ours))
+        with monkeypatch.context() as fallback:
+            fallback.setattr(layers, "COMPILED_RULES", False)
+            fallback.setattr(depth_mesh, "COMPILED", False)
+            yield got, view_arrays(compute_view(house, camera, ViewConfig(), theirs))
+
+
 @NO_EXTENSION
 @pytest.mark.parametrize("source", list(houses()))
 def test_views_are_bit_identical_to_the_numpy_path_on_the_same_engine(source, monkeypatch):
@@ -92,12 +103,7 @@ def test_views_are_bit_identical_to_the_numpy_path_on_the_same_engine(source, mo
     is missing."""
     house = load(source)
     ours, theirs = HouseTracer(house, "embree"), ray_by_ray(house)
-    for camera in sampled_views(house, (ours, theirs)):
-        got = view_arrays(compute_view(house, camera, ViewConfig(), ours))
-        with monkeypatch.context() as fallback:
-            fallback.setattr(layers, "COMPILED_RULES", False)
-            fallback.setattr(depth_mesh, "COMPILED", False)
-            want = view_arrays(compute_view(house, camera, ViewConfig(), theirs))
+    for got, want in views_both_ways(house, ours, theirs, monkeypatch):
         assert np.isfinite(got["layers.depth"][0]).any()
         for name in want:
             np.testing.assert_array_equal(got[name], want[name], err_msg=name)
@@ -114,16 +120,11 @@ def test_views_agree_with_the_open3d_engine(source, monkeypatch):
     edge-on ray at a wall's corner, coincident faces), each names the one its traversal
     meets first, and the builds' traversal orders differ on some CPUs: on an AVX-512
     Xeon one D5 vertex of 518,400 in these views differs by 2.4e-7 m (two faces tied at
-    a wall-floor edge), on the AMD EPYC of earlier runs none. Everything the extension computes beyond
-    the raw engine answers is held bit-identical to numpy above."""
+    a wall-floor edge), on the AMD EPYC of earlier runs none. Everything the extension
+    computes beyond the raw engine answers is held bit-identical to numpy above."""
     house = load(source)
     ours, theirs = HouseTracer(house, "embree"), HouseTracer(house, "open3d")
-    for camera in sampled_views(house, (ours, theirs)):
-        got = view_arrays(compute_view(house, camera, ViewConfig(), ours))
-        with monkeypatch.context() as fallback:
-            fallback.setattr(layers, "COMPILED_RULES", False)
-            fallback.setattr(depth_mesh, "COMPILED", False)
-            want = view_arrays(compute_view(house, camera, ViewConfig(), theirs))
+    for got, want in views_both_ways(house, ours, theirs, monkeypatch):
         for name in want:
             assert got[name].shape == want[name].shape, name
             differ = ~((got[name] == want[name]) | (np.isnan(got[name]) & np.isnan(want[name]))
