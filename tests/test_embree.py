@@ -156,7 +156,9 @@ def test_packets_name_the_faces_ray_by_ray_tracing_names(source):
     single = HouseTracer(house, "embree")
     single.backend = embree.EmbreeBackend(single.triangles, packet=1)
     widths = [w for w in (4, 8, 16) if _native(single.triangles, w)]
-    assert widths, "no packet width runs natively here"
+    if not widths:  # an Embree built without ray packets: the engine traces ray by ray
+        assert single.backend.packet == 1 and embree.EmbreeBackend(single.triangles).packet == 1
+        pytest.skip("this Embree build or CPU runs no ray packets natively")
     camera = sampled_views(house, (single, single), n=1)[0]
     config = ViewConfig()
     view = compute_view(house, camera, config, single)
