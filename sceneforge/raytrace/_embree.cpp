@@ -522,6 +522,7 @@ struct Packet;
             rtcInitIntersectArguments(&args);                                                   \
             args.flags = RTC_RAY_QUERY_FLAG_COHERENT;                                           \
             if (filter) {                                                                       \
+                rtcInitRayQueryContext(c);                                                      \
                 args.context = c;                                                               \
                 args.filter = filter;                                                           \
                 args.flags = static_cast<RTCRayQueryFlags>(args.flags |                         \
