@@ -436,7 +436,7 @@ def _vertex_codes(vertices: np.ndarray, planes: np.ndarray, camera: "Camera", le
     bit p; :data:`_FRONT`: not behind the envelope) of ``vertices`` (n, 3) float64.
 
     The compiled kernel repeats these float64 operations one for one, the matrix products
-    as numpy's OpenBLAS computes their 3-term rows (``a0 x0``, then fused multiply-adds).
+    as numpy's OpenBLAS computes their 3-term rows (from +0, fused multiply-adds in k order).
     """
     if compiled:
         rot, centre = camera.cam_to_world[:3, :3], camera.cam_to_world[:3, 3]

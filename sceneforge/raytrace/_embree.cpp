@@ -79,8 +79,8 @@ struct Collector {
     SFContextBase base;
     const int64_t* face_base;  // first face (house index) of each geometry of the scene
     const double* plane;      // (m, 4): each face's unit normal x, y, z and offset, together
-    double ox, oy, oz;       // the ray, float64, unshifted
-    double dx, dy, dz;
+    const double* o;         // the ray, float64, unshifted
+    const double* d;
     double cutoff;           // hits farther than this are dropped (inf: none)
     double limit32;          // engine distances farther than this are not kept
     bool raw;                // keep every crossing (no plane-distance test)
@@ -89,6 +89,15 @@ struct Collector {
     unsigned int previous_geom, previous_prim;
     float previous_t;
 };
+
+// The distance along ray (o, d) to the plane q (unit normal x, y, z and offset) and the
+// cosine n . d: `(offset - n.o) / (n.d)`, each dot product summed x, y, z, as
+// sceneforge.raytrace._plane_distance computes it.
+inline double plane_distance(const double* q, const double* o, const double* d, double& cos) {
+    const double numerator = q[3] - (q[0] * o[0] + q[1] * o[1] + q[2] * o[2]);
+    cos = q[0] * d[0] + q[1] * d[1] + q[2] * d[2];
+    return numerator / cos;
+}
 
 void collect_filter(const RTCFilterFunctionNArguments* args) {
     Collector* c = reinterpret_cast<Collector*>(args->context);
@@ -110,10 +119,8 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
             c->out->push_back({0.0, 0.0, face});
             continue;
         }
-        const double* q = c->plane + 4 * face;
-        const double numerator = q[3] - (q[0] * c->ox + q[1] * c->oy + q[2] * c->oz);
-        const double cos = q[0] * c->dx + q[1] * c->dy + q[2] * c->dz;
-        const double t = numerator / cos;
+        double cos;
+        const double t = plane_distance(c->plane + 4 * face, c->o, c->d, cos);
         if (!std::isfinite(t) || !(t <= c->cutoff)) continue;
         c->out->push_back({t, cos, face});
     }
@@ -482,17 +489,25 @@ PyObject* engine_add_scene(EngineObject* self, PyObject* args) {
 
 // The nearest face (house index) of one ray over the scenes, -1 where none; at equal
 // engine distance the earlier scene's hit stays (as the Open3D engine's intersect_first).
+// The nearest hit of one ray in one scene (rtcIntersect1): its float32 distance and face.
+void nearest_in_scene(const EngineObject* e, const Scene* s, const double* o, const double* d, float& t,
+                      int64_t& face) {
+    RTCRayHit rh;
+    set_ray(rh, e, o, d, std::numeric_limits<float>::infinity());
+    intersect_nearest(s, rh);
+    const bool hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
+    t = hit ? rh.ray.tfar : std::numeric_limits<float>::infinity();
+    face = hit ? s->face_base[rh.hit.geomID] + rh.hit.primID : -1;
+}
+
 int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d) {
     float nearest = std::numeric_limits<float>::infinity();
     int64_t face = -1;
     for (const Scene* s : scenes) {
-        RTCRayHit rh;
-        set_ray(rh, e, o, d, std::numeric_limits<float>::infinity());
-        intersect_nearest(s, rh);
-        if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID && rh.ray.tfar < nearest) {
-            nearest = rh.ray.tfar;
-            face = s->face_base[rh.hit.geomID] + rh.hit.primID;
-        }
+        float t;
+        int64_t f;
+        nearest_in_scene(e, s, o, d, t, f);
+        if (f >= 0 && t < nearest) nearest = t, face = f;
     }
     return face;
 }
@@ -604,16 +619,6 @@ inline bool near_edge(const EngineObject* e, int64_t face, float t, float u, flo
     return !((1.0f - u - v) * h[0] > margin && u * h[1] > margin && v * h[2] > margin);
 }
 
-// The nearest hit of one ray in one scene (rtcIntersect1): its float32 distance and face.
-void nearest_in_scene(const EngineObject* e, const Scene* s, const double* o, const double* d, float& t,
-                      int64_t& face) {
-    RTCRayHit rh;
-    set_ray(rh, e, o, d, std::numeric_limits<float>::infinity());
-    intersect_nearest(s, rh);
-    const bool hit = rh.hit.geomID != RTC_INVALID_GEOMETRY_ID;
-    t = hit ? rh.ray.tfar : std::numeric_limits<float>::infinity();
-    face = hit ? s->face_base[rh.hit.geomID] + rh.hit.primID : -1;
-}
 
 // nearest_face of rays lo..hi-1 (their own origins), K at a time.
 template <int K>
@@ -712,12 +717,7 @@ void closing_hits(const EngineObject* e, const std::vector<const Scene*>& scenes
         const double* o = rays.origin(r);
         const double* d = rays.direction(r);
         double& c = cos[r - lo];
-        auto plane = [&](int64_t f) {
-            const double* q = planes + 4 * f;
-            const double numerator = q[3] - (q[0] * o[0] + q[1] * o[1] + q[2] * o[2]);
-            c = q[0] * d[0] + q[1] * d[1] + q[2] * d[2];
-            t[r] = numerator / c;
-        };
+        auto plane = [&](int64_t f) { t[r] = plane_distance(planes + 4 * f, o, d, c); };
         if (face[r] >= 0) plane(face[r]);
         if (near > 0 && face[r] >= 0 && t[r] < near) {
             const double moved[3] = {o[0] + near * d[0], o[1] + near * d[1], o[2] + near * d[2]};
@@ -860,8 +860,7 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         for (int64_t r = lo; r < hi; ++r) {
             const double* o = rays.origin(r);
             const double* d = rays.direction(r);
-            c.ox = o[0], c.oy = o[1], c.oz = o[2];
-            c.dx = d[0], c.dy = d[1], c.dz = d[2];
+            c.o = o, c.d = d;
             if (closing) {
                 c.cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
             } else {
@@ -1406,8 +1405,8 @@ PyObject* compact_faces(PyObject*, PyObject* args) {
 
 // One element of `x @ M.T` as numpy's float64 matmul computes it for (n, 3) @ (3, 3)
 // (OpenBLAS's kernels): the sum starts at +0 and takes the three products by fused
-// multiply-adds in k order. A zero is then +0 whatever the signs, where a0 * x0 first (as
-// matmul_row3) may leave -0: only a -0 added after would show it.
+// multiply-adds in k order. A zero is then +0 whatever the signs, where a0 * x0 first would
+// leave -0: only a -0 added after would show it.
 __attribute__((always_inline)) inline double blas_row3(double a0, double a1, double a2, double x0, double x1, double x2) {
     return std::fma(a2, x2, std::fma(a1, x1, std::fma(a0, x0, 0.0)));
 }
@@ -1605,12 +1604,6 @@ __attribute__((always_inline)) inline int64_t numpy_int64(double x) {
     return static_cast<int64_t>(x);
 }
 
-// One row of a 3-term matrix product as numpy's float64 matmul computes it (OpenBLAS's
-// FMA kernels: a0 x0 rounded, then two fused multiply-adds in k order). std::fma is exact
-// by definition, so this does not depend on the compiler's flags.
-__attribute__((always_inline)) inline double matmul_row3(double a0, double a1, double a2, double x0, double x1, double x2) {
-    return std::fma(a2, x2, std::fma(a1, x1, a0 * x0));
-}
 
 // The loop of vertex_codes. It is compiled twice, inlined into a function for CPUs with FMA
 // instructions (std::fma one instruction) and into one for those without (a libm call):
@@ -1626,15 +1619,15 @@ __attribute__((always_inline)) inline void vertex_codes_loop(
         uint8_t bits = 0;
         for (int k = 0; k < 5; ++k) {
             const double* q = P + 4 * k;
-            double d = matmul_row3(q[0], q[1], q[2], p[0], p[1], p[2]);
+            double d = blas_row3(q[0], q[1], q[2], p[0], p[1], p[2]);
             d += q[3];
             bits |= static_cast<uint8_t>(d >= -tolerance) << k;
         }
         // the camera frame: (p - centre) @ rot, i.e. rot.T @ (p - centre)
         const double x0 = p[0] - C[0], x1 = p[1] - C[1], x2 = p[2] - C[2];
-        const double x = matmul_row3(R[0], R[3], R[6], x0, x1, x2);
-        const double y = matmul_row3(R[1], R[4], R[7], x0, x1, x2);
-        const double z = matmul_row3(R[2], R[5], R[8], x0, x1, x2);
+        const double x = blas_row3(R[0], R[3], R[6], x0, x1, x2);
+        const double y = blas_row3(R[1], R[4], R[7], x0, x1, x2);
+        const double z = blas_row3(R[2], R[5], R[8], x0, x1, x2);
         double u = fx * x;
         if (skew != 0.0) u += skew * y;
         u /= z;
