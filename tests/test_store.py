@@ -387,3 +387,29 @@ def test_layer_points_are_the_back_projected_pixel_centres():
     # pixel (row 0, column 0): centre (0.5, 0.5) → x = (0.5 - 2) / 10 · 2, y = (0.5 - 1.5) / 10 · 2
     np.testing.assert_allclose(points[0], [1.0 - 0.3, 2.0 - 0.2, 3.0 + 2.0])
     np.testing.assert_allclose(points[-1], [1.0 + (3.5 - 2.0) / 10 * 5, 2.0 + (2.5 - 1.5) / 10 * 5, 8.0])
+
+
+_COMPRESS_AFTER_RENDERING = """
+import numpy as np
+from sceneforge.render.raster import _gl
+gl = _gl()
+gl.pyrender.OffscreenRenderer(8, 8).delete()  # an EGL context: Mesa's libraries are loaded
+import numcodecs.blosc as blosc
+data = np.random.default_rng(0).normal(size=200_000).astype(np.float32)
+print(len(blosc.compress(data, b"zstd", 3, blosc.SHUFFLE, 0)))
+"""
+
+
+def test_a_process_that_rendered_compresses_to_the_same_bytes():
+    """Mesa's EGL driver brings the system's libzstd into the global namespace; numcodecs'
+    Blosc loaded after it compressed with that zstd (other bytes, so other shard files for
+    the same arrays with 2 workers than with 1). The renderer loads the compressors first."""
+    import subprocess
+    import sys
+
+    import numcodecs.blosc as blosc
+
+    data = np.random.default_rng(0).normal(size=200_000).astype(np.float32)
+    here = len(blosc.compress(data, b"zstd", 3, blosc.SHUFFLE, 0))
+    out = subprocess.run([sys.executable, "-c", _COMPRESS_AFTER_RENDERING], capture_output=True, text=True, check=True)
+    assert int(out.stdout.split()[-1]) == here

@@ -297,6 +297,9 @@ def _gl() -> SimpleNamespace:
         raise SceneforgeError(
             f"PYOPENGL_PLATFORM is {platform!r}, but sceneforge renders through EGL: unset it or set it to 'egl'"
         )
+    from ..store import load_compressors
+
+    load_compressors()  # before Mesa's libraries: see there
     try:
         import pyrender
         from pyrender.platforms import egl  # installs PyOpenGL's EGL platform, even over an earlier one
