@@ -55,11 +55,18 @@ def _scored(views, total: int):
             progress.advance(1)
 
 
-def _write(report, text, plot, json_path, title):
-    """The table, then the values (JSON first: a plot that fails loses no numbers), then the plot."""
+def _write(report, text, plot, json_path, title, extra: dict | None = None):
+    """The table, then the values (JSON first: a plot that fails loses no numbers), then the plot.
+
+    extra : more top-level entries of the JSON file (and their text, printed after the table)
+    """
     click.echo(text)
+    extra = extra or {}
+    for entry in extra.values():
+        click.echo(entry.text())
     if json_path:
-        write_text(json_path, json.dumps(report.to_dict(), indent=1))
+        write_text(json_path, json.dumps({**report.to_dict(), **{k: v.to_dict() for k, v in extra.items()}},
+                                         indent=1))
         click.echo(f"values: {json_path}")
     save_figure(report.plot(title), plot)
     click.echo(f"curves: {plot}")
@@ -94,15 +101,12 @@ def coverage(store, config, limit, json_path, plot):
     _write(report, report.coverage_text(), plot, json_path, f"coverage of ground-truth layers: {store}")
 
 
-def _split_houses(split: str, split_file: str | None, pred, gt: str):
-    """The houses of ``split`` (None for ``all``) from the split file given, else the one
-    the prediction recorded, else the one beside GT."""
-    if split == "all":
-        return None
+def _house_split(split_file: str | None, pred, gt: str):
+    """The split file given, else the one the prediction recorded, else the one beside GT."""
     from sceneforge.learn.split import default_split_file, read_split
 
     recorded = pred.attrs.get("prediction", {}).get("split_file")
-    return read_split(split_file or recorded or default_split_file([gt])).of(split)
+    return read_split(split_file or recorded or default_split_file([gt]))
 
 
 @evaluate.command()
@@ -122,29 +126,53 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     the store layout) against the ground-truth meshes of GT (the paper's table in §5): D1,
     D1 & overhead, D1-4 and D1-4 & overhead against objects, beside the paper's SUNCG
     numbers, on the test houses by default. Cameras and overhead cameras are PRED's; view
-    i of PRED must be view i of GT."""
+    i of PRED must be view i of GT.
+
+    Then whether the nets learned: depth abs-rel of D1-D4, segmentation mIoU and overhead
+    height L1 of PRED, each beside a baseline that knows only the training houses of the
+    split (per-pixel mean depth, most frequent class, mean height), printed as a table and
+    written under "learning" in --json."""
     from sceneforge.errors import SceneforgeError
-    from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, matching_view, prediction_views
-    from sceneforge.evaluate.stores import empty_views, views_to_score
+    from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
+    from sceneforge.evaluate.learning import learning_scores, training_baselines
+    from sceneforge.evaluate.stores import check_matching, empty_views, views_to_score
     from sceneforge.store import open_store
 
     _check(plot, json_path)
     pred_store, gt_store = open_store(pred), open_store(gt)
-    indices = views_to_score(pred_store, limit, _split_houses(split, split_file, pred_store, gt))
+    try:
+        houses = _house_split(split_file, pred_store, gt)
+    except SceneforgeError as e:
+        if split != "all":
+            raise
+        houses, no_split = None, e  # every view is scored; only the baselines need the training houses
+    indices = views_to_score(pred_store, limit, None if houses is None else houses.of(split))
     if not indices:
         raise SceneforgeError(f"{pred} holds no predicted view of the {split} split: predict it "
                               f"(sceneforge predict --split {split}) or choose another --split")
-    matching_view(pred_store, gt_store, indices[0])  # a mismatch is one red line, before anything is printed
-    houses = {str(pred_store.array("house_id")[i]) for i in indices}
-    click.echo(f"split: {split} ({plural(len(indices), 'view')} of {plural(len(houses), 'house')})")
+    check_matching(pred_store, gt_store, indices)  # a mismatch is one red line, before anything is printed
+    train = None if houses is None else views_to_score(gt_store, None, houses.of("train"))
+    if train is not None and not train:
+        raise SceneforgeError(f"{gt} holds no view of the {len(houses.of('train'))} training houses of "
+                              f"{houses.path}: the baselines are statistics of the training houses")
+    scored_houses = {str(pred_store.array("house_id")[i]) for i in indices}
+    click.echo(f"split: {split} ({plural(len(indices), 'view')} of {plural(len(scored_houses), 'house')})")
     empty = empty_views(pred_store, indices)
     if empty:
         click.secho(f"{len(empty)} of {len(indices)} predictions are empty (no finite D1-D4 nor overhead height): "
                     f"scored precision 1 and recall 0 by convention (views {', '.join(map(str, empty[:8]))}"
                     f"{', ...' if len(empty) > 8 else ''})", fg="yellow")
+    extra = {}
+    if houses is None:
+        click.secho(f"learning scores left out: the baselines need the training houses ({no_split})", fg="yellow")
+    else:
+        prediction = pred_store.attrs.get("prediction", {})
+        extra["learning"] = learning_scores(pred_store, gt_store, indices, training_baselines(gt_store, train),
+                                            prediction.get("stages", ("depth", "seg", "overhead")),
+                                            same_overhead_cameras=prediction.get("camera_run") is None)
     views = _scored(prediction_views(pred_store, gt_store, indices=indices), len(indices))
     report = evaluate_views(views, PREDICTION_VARIANTS, config.seed, config.surface, config.meshing)
-    _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}")
+    _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}", extra)
 
 
 def _voxel_line(v) -> str:

@@ -24,6 +24,8 @@ TRAIN_OPTIONS = (
     ConfigOption("--max-steps", "max_steps", type=click.IntRange(min=1)),
     ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
     ConfigOption("--lr", "lr", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--lr-schedule", "lr_schedule"),
+    ConfigOption("--flip", "flip"),
     ConfigOption("--width", "width", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--bn-momentum", "bn_momentum", type=click.FloatRange(0, 1, min_open=True)),
     ConfigOption("--seed", "seed"),

@@ -129,6 +129,18 @@ def is_floor_cover(category: int, label: str | None = None) -> bool:
     return in_classes(category, label, FLOOR_COVER_NAMES)
 
 
+#: segmentation classes of the paper's nets, per layer *(paper appendix)*: class ``c > 0`` is
+#: the NYU40 object class ``c + 1``; class 0 (:data:`SEG_BACKGROUND`, the slot of "wall") is
+#: background: no object, and every room-envelope class merged into one
+SEG_CLASSES = 40
+SEG_BACKGROUND = 0
+#: NYU40 id (index, 0..40) → segmentation class
+NYU40_TO_SEG: tuple[int, ...] = tuple(SEG_BACKGROUND if k == 0 or is_envelope(k) else k - 1
+                                      for k in range(len(NYU40_NAMES)))
+#: segmentation class (index, 0..39) → NYU40 id (0 for background)
+SEG_TO_NYU40: tuple[int, ...] = tuple(0 if c == SEG_BACKGROUND else c + 1 for c in range(SEG_CLASSES))
+
+
 @dataclass(frozen=True)
 class Tolerances:
     """Every tolerance of the project: metres unless a field says otherwise."""

@@ -63,6 +63,26 @@ def matching_view(pred, gt, i: int) -> dict:
     return p
 
 
+def check_matching(pred, gt, indices: Collection[int]) -> None:
+    """Check that views ``indices`` of ``pred`` are the same views of ``gt`` (house, camera
+    and pose), all at once, before anything is scored: :func:`matching_view`'s errors, for
+    the first view that differs."""
+    if len(pred) > len(gt):
+        matching_view(pred, gt, 0)
+    rows = np.asarray(sorted(indices), dtype=np.int64)
+    if not len(rows):
+        return
+    for key in ("house_id", "camera_id"):
+        p = np.array([str(x) for x in np.asarray(pred.array(key)[:])[rows]])
+        g = np.array([str(x) for x in np.asarray(gt.array(key)[:])[rows]])
+        if (p != g).any():
+            matching_view(pred, gt, int(rows[np.flatnonzero(p != g)[0]]))
+    p, g = np.asarray(pred.array("cam_to_world")[:])[rows], np.asarray(gt.array("cam_to_world")[:])[rows]
+    far = ~np.isclose(p, g, atol=1e-6).all(axis=(1, 2))
+    if far.any():
+        matching_view(pred, gt, int(rows[np.flatnonzero(far)[0]]))
+
+
 def coverage_views(store, limit: int | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
     """``(index, view, ground-truth mesh)`` of every view of ``store`` to score, read lazily
     (what :func:`~sceneforge.evaluate.evaluate_views` takes)."""

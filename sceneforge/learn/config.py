@@ -28,6 +28,9 @@ GATINGS: tuple[str, ...] = typing.get_args(Gating)
 SegEmpty = Literal["ignore", "background"]
 #: how the floor is removed from predicted overhead heights
 FloorRemoval = Literal["segmentation", "height"]
+#: how the learning rate changes over a run: "constant", or "cosine" (from ``lr`` down to 0
+#: at the run's last step, half a cosine)
+LRSchedule = Literal["constant", "cosine"]
 #: what the overhead stage caches of its input (:mod:`sceneforge.learn.cache`)
 FeatureCache = Literal["float16", "float32", "off"]
 #: mixed precision of a training run's forward pass: "auto" (bf16 on a GPU that supports it,
@@ -119,6 +122,12 @@ class TrainConfig:
     epochs: int = 40
     #: stop after this many optimiser steps; None = after ``epochs``
     max_steps: int | None = None
+    #: how the learning rate changes over the run's steps: "constant" (the paper's) or
+    #: "cosine" (from lr down to 0 at the last step; a short run settles into its minimum)
+    lr_schedule: LRSchedule = "constant"
+    #: mirror each training view left-right with probability 1/2, image and targets alike,
+    #: decided by (seed, step, view) (the depth and seg stages; the others ignore it)
+    flip: bool = False
     #: seed of the weights' initialisation and of the data order
     seed: int = 0
     #: multiplies every network width of the paper (e.g. 0.25 for a quick run; tests train
@@ -179,6 +188,8 @@ class TrainConfig:
             raise ValueError(f"max_steps must be at least 1, got {self.max_steps}")
         if not self.lr > 0 or not self.width > 0:
             raise ValueError(f"lr and width must be > 0, got {self.lr} and {self.width}")
+        if self.lr_schedule not in typing.get_args(LRSchedule):
+            raise ValueError(f"lr_schedule must be one of {typing.get_args(LRSchedule)}, got {self.lr_schedule!r}")
         if self.feature_cache not in typing.get_args(FeatureCache):
             raise ValueError(f"feature_cache must be one of {typing.get_args(FeatureCache)}, "
                              f"got {self.feature_cache!r}")

@@ -27,7 +27,7 @@ from typing import Collection, Sequence
 import numpy as np
 import torch
 
-from ..conventions import NYU40_NAMES, is_envelope
+from .. import conventions
 from ..errors import SceneforgeError
 from .config import SplitConfig  # noqa: F401  (defined without torch, for the CLI and the schema)
 from .split import SPLITS, split_houses  # noqa: F401  (re-exported: the split needs no torch)
@@ -35,9 +35,9 @@ from .split import SPLITS, split_houses  # noqa: F401  (re-exported: the split n
 #: mean RGB colour (0..255) subtracted from every input image *(ref: PBRS renderings)*
 RGB_MEAN = (178.1781, 158.5039, 142.5141)
 #: segmentation classes per layer (frontal layers 1 and 3, and the overhead view)
-SEG_CLASSES = 40
+SEG_CLASSES = conventions.SEG_CLASSES
 #: the background class: no object, and every room-envelope class
-BACKGROUND = 0
+BACKGROUND = conventions.SEG_BACKGROUND
 #: the target of a pixel where the ray hits nothing (PyTorch's ignore index)
 EMPTY = -100
 
@@ -58,19 +58,10 @@ def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
     return (x - np.asarray(RGB_MEAN, dtype=np.float32)[:, None, None]) / 255.0
 
 
-def _class_table() -> np.ndarray:
-    table = np.arange(len(NYU40_NAMES), dtype=np.int64) - 1
-    table[0] = BACKGROUND
-    for k in range(1, len(NYU40_NAMES)):
-        if is_envelope(k):
-            table[k] = BACKGROUND
-    return table
-
-
 #: NYU40 id → segmentation class
-NYU40_TO_CLASS = _class_table()
+NYU40_TO_CLASS = np.asarray(conventions.NYU40_TO_SEG, dtype=np.int64)
 #: segmentation class → NYU40 id (0 for background)
-CLASS_TO_NYU40 = np.where(np.arange(SEG_CLASSES) == BACKGROUND, 0, np.arange(SEG_CLASSES) + 1)
+CLASS_TO_NYU40 = np.asarray(conventions.SEG_TO_NYU40, dtype=np.int64)
 
 
 def segmentation_target(category: np.ndarray, empty: np.ndarray | None = None) -> np.ndarray:

@@ -64,6 +64,10 @@ class Stage(ABC):
     uses_eft: bool = False
     #: the validation metrics it logs beside the loss (:mod:`.metrics`)
     val_metrics: tuple[str, ...] = ()
+    #: the sample fields that a left-right mirror of the image mirrors too (``config.flip``);
+    #: empty: the stage's targets are not image-aligned (cameras, overhead views) and it
+    #: is never mirrored
+    flip_fields: tuple[str, ...] = ()
 
     @abstractmethod
     def build(self, config: TrainConfig, frontal: Nets) -> Nets:
@@ -104,6 +108,7 @@ class DepthStage(Stage):
 
     name, fields, predicts = "depth", ("rgb", "depth"), ("depth",)
     val_metrics = DEPTH_METRICS
+    flip_fields = fields
 
     def build(self, config, frontal):
         return {"depth": FrontalDepthNet(_widths(config, DEPTH_NET))}
@@ -123,6 +128,7 @@ class SegStage(Stage):
 
     name, fields, predicts = "seg", ("rgb", "seg"), ("seg",)
     val_metrics = ("seg_miou",)
+    flip_fields = fields
 
     def build(self, config, frontal):
         return {"seg": FrontalSegNet(_widths(config, SEG_NET))}

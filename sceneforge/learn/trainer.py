@@ -211,11 +211,19 @@ class Trainer:
         """The stage's loss on a batch (on the device) and its logged parts."""
         return self.stage.objective(self.config, self._outputs(self.train_nets, batch), batch)
 
+    def set_lr(self, lr: float) -> None:
+        """The learning rate of the next steps (the schedule's, :func:`learning_rate`)."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def step(self, batch: dict[str, Tensor], number: int) -> dict[str, float]:
         """One optimiser step on a batch; its losses as logged (``loss`` and the parts).
 
-        number : the step's number, for the error a diverged loss raises
+        number : the step's number, for the error a diverged loss raises, and which views
+                 ``config.flip`` mirrors (:func:`mirrored`)
         """
+        if self.config.flip and self.stage.flip_fields:
+            batch = mirrored(batch, self.stage.flip_fields, self.config.seed, number)
         loss, parts = self.loss(batch)
         if not torch.isfinite(loss):
             raise SceneforgeError(f"step {number}: the loss is {loss.item()} (diverged); lower --lr")
@@ -245,6 +253,34 @@ class Trainer:
         for net in self.nets.values():
             net.train()
         return {"loss": total / max(n, 1), **metrics.result()}
+
+
+def learning_rate(config: TrainConfig, step: int, total: int) -> float:
+    """The learning rate of step ``step`` (0-based) of a run of ``total`` steps:
+    ``config.lr`` throughout (``constant``), or half a cosine from ``config.lr`` at the
+    first step to 0 after the last (``cosine``)."""
+    if config.lr_schedule == "constant":
+        return config.lr
+    return config.lr * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / max(total, 1)))
+
+
+def mirrored(batch: dict[str, Tensor], fields: tuple[str, ...], seed: int, step: int) -> dict[str, Tensor]:
+    """``batch`` with about half its views mirrored left-right in ``fields`` (images and
+    image-aligned targets, last axis = columns): view ``index`` is mirrored at ``step``
+    when a hash of (seed, step, index) is odd, so the choice is the same whatever the
+    worker or process count and a resumed run makes it again."""
+    index = batch["index"].to(torch.int64)
+    h = (index * 0x9E3779B1 + step * 0x85EBCA77 + seed * 0xC2B2AE3D) & 0xFFFFFFFF
+    h = ((h ^ (h >> 15)) * 0x2C1B3C6D) & 0xFFFFFFFF
+    flip = ((h >> 16) & 1).bool()
+    if not flip.any():
+        return batch
+    out = dict(batch)
+    for name in fields:
+        v = batch[name]
+        mask = flip.to(v.device).reshape(-1, *([1] * (v.dim() - 1)))
+        out[name] = torch.where(mask, v.flip(-1), v)
+    return out
 
 
 @dataclass(frozen=True)
@@ -469,6 +505,7 @@ class EpochLoop:
         self.sampler.set_epoch(at.epoch, at.batch)
         for batch in self._train_loader:
             batch = _to(batch, dev)
+            self.trainer.set_lr(learning_rate(config, at.step, self.total))
             losses = self.trainer.step(batch, at.step)
             at = replace(at, step=at.step + 1, batch=at.batch + 1)
             self._window.add(len(batch["index"]), losses)
@@ -488,7 +525,8 @@ class EpochLoop:
         means = self._window.means()
         self.train_loss = means["loss"]
         if self.log is not None:
-            self.log.write({"step": at.step, "epoch": at.epoch, "split": "train", "lr": self.config.lr, **means,
+            lr = learning_rate(self.config, at.step - 1, self.total)
+            self.log.write({"step": at.step, "epoch": at.epoch, "split": "train", "lr": lr, **means,
                             "images_per_s": round(self.images_per_s, 3), "seconds": self._seconds()})
         self._window = _TrainWindow()
 
@@ -499,7 +537,7 @@ class EpochLoop:
         self.val_loss = self.val_metrics["loss"]
         if self.log is not None:
             self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", **self.val_metrics,
-                            "lr": self.config.lr, "seconds": self._seconds()})
+                            "lr": learning_rate(self.config, at.step, self.total), "seconds": self._seconds()})
         self._window.paused += time.perf_counter() - started
         improved = self.val_loss < self.best_loss
         self.best_loss = min(self.best_loss, self.val_loss)
