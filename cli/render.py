@@ -147,9 +147,13 @@ def validate(store, quiet):
               help="PNG to write. Default: <store name>_view<I>.png in the current folder.")
 @click.option("--3d", "ply", type=click.Path(dir_okay=False), default=None,
               help="Also write the view's layers as a PLY point cloud coloured by layer.")
-def show(store, index, output, ply):
+@click.option("--truth", default=None,
+              help="STORE holds predictions (sceneforge predict): draw them under this ground-truth "
+                   "store's same view instead (its RGB, D1..D5, classes, overhead heights).")
+def show(store, index, output, ply, truth):
     """Write a PNG panel of one view: RGB, D1..D5 with a colour bar, layer classes, overhead
-    height and classes, and a top-down view with the overhead camera's footprint."""
+    height and classes, and a top-down view with the overhead camera's footprint. With
+    --truth, a predicted view under its truth instead."""
     from sceneforge.preview import write_panel, write_point_cloud
     from sceneforge.store import open_store
 
@@ -158,11 +162,17 @@ def show(store, index, output, ply):
     s = open_store(store)
     if not -len(s) <= index < len(s):
         raise click.BadParameter(f"the store has {plural(len(s), 'view')}", param_hint="--view")
+    gt = None
+    if truth is not None:
+        from sceneforge.evaluate.stores import matching_view
+
+        gt = open_store(truth)
+        matching_view(s, gt, index % len(s))
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
     png = Path(output or f"{name}_view{index % len(s)}.png")
     check_output(png, "panel")
     with atomic_output(png) as tmp:
-        write_panel(s, index, tmp)
+        write_panel(s, index, tmp, truth=gt)
     click.echo(f"panel: {png}")
     if ply:
         with atomic_output(ply) as tmp:

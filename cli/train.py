@@ -37,6 +37,7 @@ TRAIN_OPTIONS = (
     ConfigOption("--feature-cache", "feature_cache"),
     ConfigOption("--feature-cache-gib", "feature_cache_gib", type=click.FloatRange(min=0)),
     ConfigOption("--seg-empty", "loss.seg_empty"),
+    ConfigOption("--seg-balance", "loss.seg_balance", type=click.FloatRange(0, 1)),
     ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--split-seed", "split.seed"),

@@ -1,4 +1,5 @@
-"""Looking at a stored view: a PNG panel and a coloured point cloud of its layers.
+"""Looking at a stored view: a PNG panel and a coloured point cloud of its layers, and a
+predicted view under its truth.
 
 The panel shows the RGB image, D1..D5 on one colour scale, the classes of layers 1, 3 and
 5, the overhead height map and classes, and a top-down view (world X right, Z down) of the
@@ -126,6 +127,52 @@ def view_panel(store: "SceneStore", index: int) -> "matplotlib.figure.Figure":
     return fig
 
 
+def comparison_panel(pred: "SceneStore", truth: "SceneStore", index: int) -> "matplotlib.figure.Figure":
+    """View ``index`` of a store of predictions (``sceneforge predict``) under the same view of
+    its ground truth: the truth's RGB, D1..D5 on the truth's colour scale, the classes of
+    layers 1 and 3, and the overhead heights; white = no surface (a masked or removed
+    prediction). The caller checks that the two views are the same view."""
+    try:
+        import matplotlib
+        from matplotlib.colors import ListedColormap
+        from matplotlib.figure import Figure
+    except ImportError as e:
+        raise MissingDependencyError("matplotlib", "the comparison panel", "pip install sceneforge[plot]") from e
+    from .houses.inspect import category_colors
+
+    rows = (("truth", truth.view(index)), ("prediction", pred.view(index)))
+    classes = ListedColormap(category_colors() / 255.0)
+    fig = Figure(figsize=(22, 5.2), layout="constrained")
+    axes = fig.subplots(2, 9)
+    finite = rows[0][1]["depth"][np.isfinite(rows[0][1]["depth"])]
+    vmax = float(finite.max()) if finite.size else 1.0
+    heights = rows[0][1]["overhead_height"][np.isfinite(rows[0][1]["overhead_height"])]
+    hmax = float(heights.max()) if heights.size else 1.0
+    for r, (label, v) in enumerate(rows):
+        panels = [(rows[0][1].get("rgb"), "RGB (the input)", {}),
+                  *[(v["depth"][k], f"{name} (m)", {"cmap": "viridis", "vmin": 0.0, "vmax": vmax})
+                    for k, name in enumerate(LAYER_NAMES)],
+                  *[(v["category"][k], f"class of {name}",
+                     {"cmap": classes, "vmin": 0, "vmax": len(NYU40_NAMES) - 1}) for k, name in ((0, "D1"), (1, "D3"))],
+                  (v["overhead_height"], "overhead height (m)", {"cmap": "magma", "vmin": 0.0, "vmax": hmax})]
+        for c, (data, title, kw) in enumerate(panels):
+            ax = axes[r][c]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if data is None:
+                ax.set_title("RGB (not rendered)", fontsize=9)
+                continue
+            if "cmap" in kw:
+                cmap = kw.pop("cmap")
+                kw["cmap"] = (matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap).with_extremes(bad="white")
+            ax.imshow(data, interpolation="nearest", **kw)
+            ax.set_title(title if r == 0 else "", fontsize=9)
+        axes[r][0].set_ylabel(label, fontsize=11)
+    fig.suptitle(f"view {index % len(truth)}: house {rows[0][1]['house_id']}, camera {int(rows[0][1]['camera_id'])}"
+                 "; top: the truth, bottom: the prediction", fontsize=10)
+    return fig
+
+
 def _top_down(ax, v: dict) -> None:
     """World X right, Z down: layer points, the frontal camera and the overhead footprint."""
     points, layer = layer_points(v["K"], v["cam_to_world"], v["depth"])
@@ -144,9 +191,11 @@ def _top_down(ax, v: dict) -> None:
     ax.set_title("top-down: layer points, camera, overhead footprint", fontsize=10)
 
 
-def write_panel(store: "SceneStore", index: int, path: str | Path) -> Path:
-    """Write the panel of view ``index`` to a PNG at ``path``."""
+def write_panel(store: "SceneStore", index: int, path: str | Path, truth: "SceneStore | None" = None) -> Path:
+    """Write the panel of view ``index`` to a PNG at ``path``: :func:`view_panel`, or with
+    ``truth`` (``store`` holding predictions) :func:`comparison_panel`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    view_panel(store, index).savefig(path, dpi=80)
+    fig = view_panel(store, index) if truth is None else comparison_panel(store, truth, index)
+    fig.savefig(path, dpi=80)
     return path

@@ -145,3 +145,33 @@ def test_voxels_per_view_and_histogram(store, tmp_path):
 def test_missing_store_is_one_red_line(tmp_path):
     res = run("evaluate", "coverage", tmp_path / "nothing.zarr")
     assert res.exit_code == 1 and "error:" in res.output and "Traceback" not in res.output
+
+
+def _split_file(path, train, val=(), test=()):
+    path.write_text(json.dumps({"version": 1, "val_fraction": 0.34, "test_fraction": 0.34, "seed": 0,
+                                "stores": [], "train": list(train), "val": list(val), "test": list(test)}))
+    return path
+
+
+def test_predictions_print_the_learning_scores_beside_the_baselines(store, tmp_path):
+    split = _split_file(tmp_path / "split.json", ["toy_0_001", "toy_0_002"], test=["toy_0_000"])
+    js = tmp_path / "pred.json"
+    res = run("evaluate", "predictions", store, store, "--density", 1000, "--plot", tmp_path / "p.png",
+              "--split-file", split, "--json", js)
+    assert res.exit_code == 0, res.output
+    assert res.output.splitlines()[0] == "split: test (1 view of 1 house)"
+    assert "learning: the model next to a trivial predictor of the 2 training views (no image), on 1 view" in res.output
+    learning = json.loads(js.read_text())["learning"]
+    # the truth scored as a prediction: exact depths and classes, next to a baseline that is not
+    assert learning["depth_absrel"]["model"] == 0.0 and learning["depth_absrel"]["baseline"] > 0.05
+    assert learning["seg_miou"]["model"] == 1.0 and learning["seg_miou"]["baseline"] < 0.5
+    assert learning["overhead_height_l1"]["model"] == 0.0 and learning["overhead_height_l1"]["baseline"] > 0.05
+    assert learning["depth_coverage"] == 1.0 and learning["views"] == 1 and learning["train_views"] == 2
+
+
+def test_a_split_without_training_houses_in_the_truth_is_one_red_line(store, tmp_path):
+    split = _split_file(tmp_path / "split.json", ["elsewhere_1"], test=["toy_0_000"])
+    res = run("evaluate", "predictions", store, store, "--plot", tmp_path / "p.png", "--split-file", split)
+    assert res.exit_code == 1 and res.output.count("\n") == 1, res.output
+    assert "holds no view of the 1 training houses" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "p.png").exists()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 import pickle
 
 import numpy as np
@@ -136,6 +137,28 @@ def test_segmentation_and_height_losses():
     pred = torch.tensor([[[[1.5, 99.0], [0.0, -99.0]]]])
     assert height_loss(pred, height).item() == pytest.approx(0.5)
     assert height_loss(pred, height, torch.tensor([[[True, True], [False, False]]])).item() == pytest.approx(0.5)
+
+
+def test_class_balance_weighs_each_class_of_a_layer_alike():
+    from sceneforge.learn.losses import class_balance_weights
+
+    # layer 1: background ×3 and class 7 ×1; layer 2: class 5 ×2, background ×1 and one empty pixel
+    target = torch.tensor([[[[0, 0], [0, 7]], [[5, 5], [0, EMPTY]]]])
+    w = class_balance_weights(target, 1.0)
+    torch.testing.assert_close(w, torch.tensor([[[[1 / 3, 1 / 3], [1 / 3, 1.0]], [[0.5, 0.5], [1.0, 0.0]]]]))
+    torch.testing.assert_close(class_balance_weights(target, 0.5)[0, 0, 0, 0], torch.tensor(3 ** -0.5))
+    # per-pixel losses 1 (background), 3 (class 7) in layer 1: plain mean (1·3 + 3) / 4, balanced
+    # (1 + 3) / 2; layer 2 all 2; the loss is the mean of the layers
+    logits = torch.zeros(1, 2, 40, 2, 2)
+    logits[0, :, 0] = 1.0  # both layers favour background
+    plain = segmentation_loss(logits.reshape(1, 80, 2, 2), target).item()
+    balanced = segmentation_loss(logits.reshape(1, 80, 2, 2), target, LossConfig(seg_balance=1.0)).item()
+    p_bg = math.log(math.e + 39) - 1  # cross-entropy of the favoured class
+    p_other = math.log(math.e + 39)
+    assert plain == pytest.approx(((3 * p_bg + p_other) / 4 + (2 * p_other + p_bg) / 3) / 2, rel=1e-5)
+    assert balanced == pytest.approx(((p_bg + p_other) / 2 + (p_other + p_bg) / 2) / 2, rel=1e-5)
+    with pytest.raises(ValueError, match="seg_balance must be in"):
+        LossConfig(seg_balance=2.0)
 
 
 def test_changing_the_floors_height_target_leaves_the_height_loss_unchanged(store):
@@ -374,6 +397,50 @@ def test_the_epoch_loop_logs_validates_and_checkpoints_on_schedule(tmp_path):
 
 
 
+def test_the_cosine_schedule_falls_from_lr_to_zero_and_the_metrics_log_it(tmp_path):
+    from sceneforge.learn.trainer import learning_rate
+
+    config = TrainConfig(stage="depth", stores=("unread",), lr=1e-3, lr_schedule="cosine")
+    assert [learning_rate(config, s, 10) for s in (0, 5, 10)] == pytest.approx([1e-3, 5e-4, 0.0])
+    assert learning_rate(config, 2, 10) == pytest.approx(1e-3 * (1 + math.cos(math.pi * 0.2)) / 2)
+    assert learning_rate(replace(config, lr_schedule="constant"), 7, 10) == 1e-3
+    with pytest.raises(ValueError, match="lr_schedule must be one of"):
+        replace(config, lr_schedule="step")
+    trainer = _depth_trainer(batch_size=2, epochs=1, log_every=1, lr=1e-3, lr_schedule="cosine")
+    log = MetricsLog(tmp_path, (), None, tensorboard=False)
+    EpochLoop(trainer, _Views(8), None, 4, log, Checkpoint(tmp_path / "c.pt")).run(Position())
+    # each train row logs the lr of the step it ends; the optimiser ran the last one
+    lrs = [float(r["lr"]) for r in read_metrics(tmp_path / "metrics.csv")]
+    assert lrs == pytest.approx([learning_rate(trainer.config, s, 4) for s in range(4)])
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(lrs[-1])
+
+
+def test_mirroring_flips_half_the_views_by_seed_step_and_view_alone():
+    from sceneforge.learn.trainer import mirrored
+
+    g = torch.Generator().manual_seed(0)
+    batch = {"index": torch.arange(64), "rgb": torch.randn(64, 3, 2, 3, generator=g),
+             "seg": torch.randint(0, 40, (64, 2, 2, 3), generator=g), "K": torch.randn(64, 3, 3, generator=g)}
+    out = mirrored(batch, ("rgb", "seg"), seed=0, step=3)
+    flipped = torch.tensor([not torch.equal(out["rgb"][i], batch["rgb"][i]) for i in range(64)])
+    assert 20 <= int(flipped.sum()) <= 44
+    for i in range(64):
+        for name in ("rgb", "seg"):
+            want = batch[name][i].flip(-1) if flipped[i] else batch[name][i]
+            assert torch.equal(out[name][i], want)
+    assert out["K"] is batch["K"]  # not an image: left alone
+    # the same views flip in a batch of other views (another process's share, a resumed run)
+    share = {k: v[10:20] for k, v in batch.items()}
+    again = mirrored(share, ("rgb", "seg"), seed=0, step=3)
+    assert torch.equal(again["rgb"], out["rgb"][10:20])
+    other_step = mirrored(batch, ("rgb",), seed=0, step=4)["rgb"]
+    other_seed = mirrored(batch, ("rgb",), seed=1, step=3)["rgb"]
+    assert not torch.equal(other_step, out["rgb"]) and not torch.equal(other_seed, out["rgb"])
+    # stages whose targets are not image-aligned are never mirrored
+    assert {n: s.flip_fields for n, s in REGISTRY.items()} == {"depth": ("rgb", "depth"), "seg": ("rgb", "seg"),
+                                                              "overhead": (), "camera": ()}
+
+
 @pytest.mark.parametrize("stage", ["depth", "seg", "overhead", "camera"])
 def test_every_stage_trains_two_steps_on_cpu(stage, store, frontal_runs, tmp_path):
     kw = {}
@@ -578,6 +645,35 @@ def test_cli_train_and_predict(store, frontal_runs, tmp_path):
     result = runner.invoke(cli, ["predict", frontal_runs["depth"], store, out + "2", "--device", "cpu"])
     assert result.exit_code == 1 and "no valid view of the 0 test houses" in result.output
     assert "--split all" in result.output and "Traceback" not in result.output
+
+    # a predicted view under its truth; a truth of other views is one red line
+    from sceneforge.cli.render import show
+
+    png = tmp_path / "compare.png"
+    result = runner.invoke(show, [out, "--view", "2", "--truth", store, "-o", str(png)])
+    assert result.exit_code == 0, result.output
+    from PIL import Image
+
+    assert Image.open(png).size == (1760, 416)
+    other = str(tmp_path / "other.zarr")
+    from sceneforge.config import load_config
+    from sceneforge.pipeline import render_dataset
+
+    render_dataset("bundled:toy", other, load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
+                                                            "seed": 5, "rgb": {"enabled": False}}))
+    bad = CliRunner().invoke(cli_show_group(), ["show", out, "--view", "2", "--truth", other, "-o", str(png)])
+    assert bad.exit_code == 1 and "another camera pose" in bad.output and bad.output.count("\n") == 1
+
+
+def cli_show_group():
+    import click
+    from sceneforge.cli.main import LazyGroup
+
+    @click.group(cls=LazyGroup, lazy={"show": "render:show"})
+    def cli():
+        pass
+
+    return cli
 
 
 # ---------------------------------------------------------------------------- the split

@@ -154,8 +154,8 @@ class LearningReport:
         return out
 
     def text(self) -> str:
-        lines = [f"learning: the model next to a trivial predictor of the {self.train_views} training views "
-                 f"(no image), {self.views} views",
+        lines = [f"learning: the model next to a trivial predictor of the {_n(self.train_views, 'training view')} "
+                 f"(no image), on {_n(self.views, 'view')}",
                  f"{'score':<22}{'model':>9}{'baseline':>10}  better"]
         for name in SCORES:
             pair = self.scores.get(name)
@@ -167,6 +167,10 @@ class LearningReport:
             lines.append(f"depth scored on {self.depth_coverage:.1%} of D1-D4's object pixels "
                          "(those the model predicted)")
         return "\n".join(lines)
+
+
+def _n(count: int, what: str) -> str:
+    return f"{count} {what}{'' if count == 1 else 's'}"
 
 
 def _finite_or_none(x: float) -> float | None:

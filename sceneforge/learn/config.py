@@ -73,8 +73,14 @@ class LossConfig:
     #: pixels where the ray hits nothing in the segmentation losses: "ignore" them (the
     #: authors') or count them as "background"
     seg_empty: SegEmpty = "ignore"
+    #: weigh each pixel of the segmentation losses by (pixels of its class in its layer of
+    #: the batch) ** -seg_balance: 0 plain cross-entropy (the paper's); 1 every class of a
+    #: batch weighs as much as any other, so small objects are not drowned by background
+    seg_balance: float = 0.0
 
     def __post_init__(self):
+        if not 0 <= self.seg_balance <= 1:
+            raise ValueError(f"seg_balance must be in [0, 1], got {self.seg_balance}")
         if self.seg_empty not in typing.get_args(SegEmpty):
             raise ValueError(f"seg_empty must be one of {typing.get_args(SegEmpty)}, got {self.seg_empty!r}")
 

@@ -54,7 +54,8 @@ def segmentation_loss(logits: Tensor, target: Tensor, config: LossConfig | None 
     target : (B, L, H, W) int64 classes, :data:`EMPTY` where the ray hits nothing; or
              (B, H, W) when L = 1
     ``config.seg_empty == "background"`` counts empty pixels as background instead. A
-    layer without any non-empty pixel adds 0.
+    layer without any non-empty pixel adds 0. ``config.seg_balance`` > 0 weighs each pixel
+    by :func:`class_balance_weights` (a weighted mean per layer).
     """
     config = config or LossConfig()
     B, C, H, W = logits.shape
@@ -64,8 +65,25 @@ def segmentation_loss(logits: Tensor, target: Tensor, config: LossConfig | None 
         target = torch.where(target == EMPTY, BACKGROUND, target)
     ce = F.cross_entropy(logits.reshape(B, L, SEG_CLASSES, H, W).transpose(1, 2), target, reduction="none",
                          ignore_index=EMPTY)
-    counted = (target != EMPTY).sum(dim=(0, 2, 3)).clamp(min=1)
-    return (ce.sum(dim=(0, 2, 3)) / counted).mean()
+    if config.seg_balance == 0:
+        counted = (target != EMPTY).sum(dim=(0, 2, 3)).clamp(min=1)
+        return (ce.sum(dim=(0, 2, 3)) / counted).mean()
+    weights = class_balance_weights(target, config.seg_balance)
+    return ((ce * weights).sum(dim=(0, 2, 3)) / weights.sum(dim=(0, 2, 3)).clamp(min=1e-12)).mean()
+
+
+def class_balance_weights(target: Tensor, balance: float) -> Tensor:
+    """Per-pixel weights (B, L, H, W) of the targets (B, L, H, W): ``n_c ** -balance``, ``n_c``
+    the pixels of the pixel's class in its layer of the batch, 0 where :data:`EMPTY`. With
+    ``balance`` 1 every class present in a layer weighs as much in total as any other."""
+    B, L, H, W = target.shape
+    valid = target != EMPTY
+    classes = torch.where(valid, target, torch.zeros_like(target)).transpose(0, 1).reshape(L, -1)
+    counts = torch.zeros(L, SEG_CLASSES, device=target.device).scatter_add_(
+        1, classes, valid.transpose(0, 1).reshape(L, -1).float())
+    per_class = counts.clamp(min=1) ** -balance
+    weights = per_class.gather(1, classes).reshape(L, B, H, W).transpose(0, 1)
+    return torch.where(valid, weights, torch.zeros_like(weights))
 
 
 def height_loss(pred: Tensor, target: Tensor, supervised: Tensor | None = None) -> Tensor:

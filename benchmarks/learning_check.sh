@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# Does a model trained on sceneforge's stores learn on houses it never saw? The README's
+# training recipe on a 2-core CPU, in under 25 minutes:
+#
+#   benchmarks/learning_check.sh HOUSES WORKDIR
+#
+# renders HOUSES (a folder of houses, e.g. `sceneforge toy-houses houses --count 40 --seed 1`)
+# into WORKDIR/gt.zarr, trains the depth, segmentation and overhead stages on the training
+# houses of a split of whole houses (validation and test houses are never trained on),
+# predicts the test houses into WORKDIR/pred.zarr and scores them with `sceneforge evaluate
+# predictions` (WORKDIR/evaluation.json: the paper's table and, under "learning", each score
+# of the model beside a trivial predictor's). The settings are the config files in
+# benchmarks/learning/. A killed run starts again where it stopped: the store resumes and
+# each stage continues from its checkpoint.
+#
+# SCENEFORGE: the command to run (default: sceneforge on the PATH, else .venv/bin/sceneforge).
+set -euo pipefail
+
+if [ $# -ne 2 ]; then
+    echo "usage: $0 HOUSES WORKDIR" >&2
+    exit 2
+fi
+houses=$1
+work=$2
+recipe=$(cd "$(dirname "$0")" && pwd)/learning
+here=$(cd "$(dirname "$0")/.." && pwd)
+sf=${SCENEFORGE:-$(command -v sceneforge || echo "$here/.venv/bin/sceneforge")}
+[ -d "$houses" ] || { echo "error: $houses is not a folder of houses" >&2; exit 2; }
+mkdir -p "$work"
+
+timings=()
+step() {  # step NAME COMMAND...: run it and keep its wall time
+    local name=$1 t0
+    shift
+    t0=$(date +%s)
+    echo "== $name: $*" >&2
+    "$@"
+    timings+=("$name $(( $(date +%s) - t0 )) s")
+}
+
+started=$(date +%s)
+step render "$sf" render "$houses" "$work/gt.zarr" --config "$recipe/render.json" --workers 2
+for stage in depth seg overhead; do
+    run="$work/runs/$stage"
+    more=()
+    [ -f "$run/checkpoint.pt" ] && more+=(--resume)
+    [ "$stage" = overhead ] && more+=(--depth-run "$work/runs/depth" --seg-run "$work/runs/seg")
+    step "$stage" "$sf" train "$work/gt.zarr" --config "$recipe/$stage.json" --run "$run" "${more[@]}"
+done
+step predict "$sf" predict "$work/runs/overhead" "$work/gt.zarr" "$work/pred.zarr" --overwrite
+step evaluate "$sf" evaluate predictions "$work/pred.zarr" "$work/gt.zarr" --json "$work/evaluation.json" \
+    --plot "$work/predictions.png"
+echo "== times: ${timings[*]}; whole recipe $(( $(date +%s) - started )) s" >&2
