@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pytest
