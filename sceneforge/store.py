@@ -181,18 +181,6 @@ def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dic
 # ----------------------------------------------------------------------------- writing
 
 
-def load_compressors() -> None:
-    """Load the compressors' extensions (numcodecs' Blosc and zstd) now, before a renderer.
-
-    They carry their own zstd but export its symbols, and a library loaded into the global
-    namespace first takes them over: Mesa's EGL driver brings in the system's libzstd, after
-    which the same arrays compress to other (valid) bytes. A worker that rendered before it
-    first wrote made other shard files than a one-worker run (the arrays decoded the same);
-    the raster renderer calls this before it loads pyrender and EGL."""
-    import numcodecs.blosc  # noqa: F401
-    import numcodecs.zstd  # noqa: F401
-
-
 def _compressor(config: "DatasetConfig"):
     """The configured compressor. Blosc shuffles by the array's item size (zarr sets it from
     the dtype), so single-byte arrays (RGB, masks) are compressed as plain zstd would."""
