@@ -173,7 +173,8 @@ def test_help_imports_no_torch():
 
 def test_overhead_explanation_is_one_library_call(small_house, tmp_path):
     from sceneforge.houses.formats.native import write_house
-    from sceneforge.overhead import OverheadConfig, explain_overhead_cameras
+    from sceneforge.overhead import OverheadConfig
+    from sceneforge.pipeline.explain import explain_overhead_cameras
 
     write_house(small_house, tmp_path / "small")
     cameras = tmp_path / "cameras.txt"
