@@ -30,6 +30,7 @@ from sceneforge.cameras import (
     pose_from_view,
     sample_cameras,
 )
+from sceneforge.colour import linear_to_srgb, srgb_to_linear
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, House, Instance, Material, Room, discover, load, make_instance
 from sceneforge.layers import frontal_layers
@@ -39,9 +40,7 @@ from sceneforge.render import (
     Renderer,
     house_batches,
     house_lights,
-    linear_to_srgb,
     room_lights,
-    srgb_to_linear,
     tonemap,
 )
 from sceneforge.render.lights import WINDOW_CONE, room_ambient
