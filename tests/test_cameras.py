@@ -97,7 +97,7 @@ def test_opencv_to_opengl():
 
 def test_cameras_and_store_validation_share_the_rotation_tolerance():
     # A pose a valid store holds must load as a Camera: both use conventions.tol.rotation.
-    from sceneforge.store import _rigid_problems
+    from sceneforge.store.validate import _rigid_problems
 
     def sheared(eps):
         pose = np.eye(4)
