@@ -23,7 +23,6 @@ from sceneforge.overhead import (
     GravityFrame,
     OverheadCamera,
     OverheadConfig,
-    _frame_rays,
     combine,
     depth_statistics_box,
     envelope_frustum_box,
@@ -35,6 +34,7 @@ from sceneforge.overhead import (
     overhead_truth,
     place_overhead_camera,
 )
+from sceneforge.overhead.points import _frame_rays
 from sceneforge.raytrace import HouseTracer
 
 from .conftest import box_instance, box_room
