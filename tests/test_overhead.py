@@ -10,7 +10,8 @@ import pytest
 from click.testing import CliRunner
 from sceneforge.cli.main import cli
 
-from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes, tol
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, discover, load

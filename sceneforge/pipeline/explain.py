@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..cameras import Camera, CameraSamplerConfig, SamplerReport, read_pbrs_cameras, sample_cameras
+from ..camera_sampler import CameraSamplerConfig, SamplerReport, sample_cameras
+from ..cameras import Camera, read_pbrs_cameras
 from ..errors import MissingDependencyError, SceneforgeError, plural
 from ..houses import HouseSource, LoadOptions, load
 from ..layers import frontal_layers

@@ -28,9 +28,9 @@ def house_rng(seed: int, house_id: str) -> np.random.Generator:
 
 def sample_house_cameras(house, config: "DatasetConfig", tracer=None):
     """The cameras ``sceneforge render`` samples for ``house`` with ``config`` and the
-    sampler's report (:class:`~sceneforge.cameras.SamplerReport`): the same generator
+    sampler's report (:class:`~sceneforge.camera_sampler.SamplerReport`): the same generator
     (seed and house id), so ``houses inspect --cameras`` shows what render will choose."""
-    from ..cameras import sample_cameras
+    from ..camera_sampler import sample_cameras
 
     return sample_cameras(house, config.views_per_house, house_rng(config.seed, house.id), config.sampler, tracer)
 
