@@ -24,16 +24,18 @@ from sceneforge.overhead import (
     GravityFrame,
     OverheadCamera,
     OverheadConfig,
-    combine,
-    depth_statistics_box,
-    envelope_frustum_box,
     frontal_points_fast,
     gravity_frame,
     level_floor_y,
-    majority_room_box,
     overhead_camera,
     overhead_truth,
     place_overhead_camera,
+)
+from sceneforge.overhead.heuristics import (
+    combine,
+    depth_statistics_box,
+    envelope_frustum_box,
+    majority_room_box,
 )
 from sceneforge.overhead.points import _frame_rays
 from sceneforge.raytrace import HouseTracer

@@ -29,20 +29,11 @@ from __future__ import annotations
 from .camera import OverheadCamera, overhead_camera, overhead_camera_and_points, place_overhead_camera
 from .config import FLOOR, OverheadConfig
 from .frame import Box, GravityFrame, gravity_frame
-from .heuristics import (
-    CANDIDATE_NAMES,
-    Candidate,
-    FrontalPoints,
-    combine,
-    depth_statistics_box,
-    envelope_frustum_box,
-    majority_room_box,
-)
+from .heuristics import CANDIDATE_NAMES, Candidate, FrontalPoints
 from .points import FLOOR_SOURCES, frontal_points_fast, level_floor_y
 from .truth import OverheadTruth, overhead_instances, overhead_truth
 
 __all__ = ["CANDIDATE_NAMES", "FLOOR", "FLOOR_SOURCES", "Box", "Candidate", "FrontalPoints", "GravityFrame",
-           "OverheadCamera", "OverheadConfig", "OverheadTruth", "combine", "depth_statistics_box",
-           "envelope_frustum_box", "frontal_points_fast", "gravity_frame", "level_floor_y", "majority_room_box",
-           "overhead_camera", "overhead_camera_and_points", "overhead_instances", "overhead_truth",
+           "OverheadCamera", "OverheadConfig", "OverheadTruth", "frontal_points_fast", "gravity_frame",
+           "level_floor_y", "overhead_camera", "overhead_camera_and_points", "overhead_instances", "overhead_truth",
            "place_overhead_camera"]
