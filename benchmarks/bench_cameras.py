@@ -1,7 +1,7 @@
 """What sampled views see, before and after the sampler of issue 12, in one run.
 
 Per house and sampler: the views it accepted out of those requested, and per view (traced
-at ``--size``, the same rule for every sampler: :class:`sceneforge.cameras.ViewStats`) the
+at ``--size``, the same rule for every sampler: :class:`sceneforge.camera_sampler.ViewStats`) the
 distinct labelled objects seen, the D3 coverage (pixels with an occluded second object)
 and the median distance to the envelope (planar D5 depth), averaged over the views, with
 the worst view's envelope distance; and the seconds and candidates the sampling took.
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sceneforge.cameras import CameraSamplerConfig, ViewStats, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, ViewStats, sample_cameras
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.layers import frontal_layers
 from sceneforge.raytrace import HouseTracer

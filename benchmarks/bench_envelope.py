@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.depth_mesh import compact, perspective_faces, perspective_points
 from sceneforge.frustum import ViewMeshConfig, _clipped_meshes, _envelope_limit, frustum_planes
 from sceneforge.houses import BUNDLED_TOY, discover, load

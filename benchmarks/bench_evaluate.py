@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from sceneforge.cameras import sample_cameras
+from sceneforge.camera_sampler import sample_cameras
 from sceneforge.evaluate import (
     COVERAGE_VARIANTS,
     GT_KINDS,

@@ -44,7 +44,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads, as in 
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras  # noqa: E402
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras  # noqa: E402
 from sceneforge.conventions import tol  # noqa: E402
 from sceneforge.frustum import view_mesh  # noqa: E402
 from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_instance  # noqa: E402

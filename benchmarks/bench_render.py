@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import look_at_camera
 from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
 from sceneforge.raytrace import HouseTracer
 from sceneforge.render import RenderConfig, open_renderer

@@ -76,7 +76,8 @@ def check_rendering(gpu: int | None) -> list[Check]:
     """EGL devices, the OpenGL strings of a context, and one rendered frame of a toy house."""
     import numpy as np
 
-    from sceneforge.cameras import CameraSamplerConfig, look_at_camera
+    from sceneforge.camera_sampler import CameraSamplerConfig
+    from sceneforge.cameras import look_at_camera
     from sceneforge.errors import SceneforgeError
     from sceneforge.houses import BUNDLED_TOY, discover, load
     from sceneforge.render import INSTALL_EGL, Renderer, egl_devices

@@ -44,6 +44,9 @@ class ConfigOption:
     fields   : dotted path(s) of the field(s) it sets, ``"view.overhead.resolution"``; with
                several, a tuple value is spread over them (``--resolution WxH`` → width,
                height) and any other value sets them all (``--seed``)
+    help     : an option of several fields only, and required there: what the option does
+               as a whole (each field's doc says what that field is, and two docs glued
+               together do not read as one help); an option of one field takes its doc
     type     : a Click type narrower than the field's (a range, an existing path, a parser
                such as :class:`Size`); default: from the field's type hint
     convert  : applied to the parsed value before it becomes an override (e.g. a path made absolute)
@@ -55,6 +58,12 @@ class ConfigOption:
     type: click.ParamType | None = None
     convert: Callable | None = None
     metavar: str | None = None
+    help: str | None = None
+
+    def __post_init__(self):
+        if (len(self.paths) > 1) != (self.help is not None):
+            raise TypeError(f"{self.decl}: an option that sets several fields says what it does in help=, "
+                            "an option of one field takes its field's doc")
 
     @property
     def paths(self) -> tuple[str, ...]:
@@ -108,12 +117,19 @@ def _click_kwargs(hint) -> dict:
     return {"type": _TYPES[hint]}
 
 
-def _help(docs: list[str]) -> str:
-    """The fields' docs as one help text (``None = x``, the docs' way to say what an unset
-    field means, reads "not set: x" on the command line)."""
-    text = "; ".join(dict.fromkeys(d for d in docs if d)).replace("``", "").replace("None = ", "not set: ")
+def _help(doc: str) -> str:
+    """A field's doc (or an option's own help) as a sentence of help text (``None = x``, the
+    docs' way to say what an unset field means, reads "not set: x" on the command line)."""
+    text = doc.replace("``", "").replace("None = ", "not set: ")
     text = text[:1].upper() + text[1:]
     return text if text.endswith(".") else text + "."
+
+
+def _doc(root: type, path: str) -> str:
+    doc = field_doc(root, path)
+    if not doc:
+        raise TypeError(f"{root.__name__}.{path} has no #: doc to be its option's help")
+    return doc
 
 
 def _default(opt: ConfigOption, defaults: list):
@@ -144,7 +160,7 @@ def _parameter(root: type, opt: ConfigOption):
             decl = f"{decl}/--no-{decl.lstrip('-')}"
     default = _default(opt, defaults)
     return click.option(decl, opt.name, default=default, show_default=default is not None, metavar=opt.metavar,
-                        help=_help([field_doc(root, p) for p in opt.paths]), **kwargs)
+                        help=_help(opt.help or _doc(root, opt.paths[0])), **kwargs)
 
 
 def _given(ctx: click.Context, name: str) -> bool:

@@ -52,7 +52,7 @@ def overhead_camera(house, config, camera_file, views, view_index, store, plot):
     cameras `render --views-per-house N --seed S` gives the house. `--store S --view I`
     explains view I of a rendered store exactly.
     """
-    from sceneforge.overhead import explain_overhead_cameras, explain_stored_view, plot_candidates
+    from sceneforge.pipeline.explain import explain_overhead_cameras, explain_stored_view, plot_candidates
 
     ctx = click.get_current_context()
     given = [f"--{name.replace('_', '-')}" for name in ("views", "seed", "camera_file")

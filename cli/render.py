@@ -33,16 +33,21 @@ class RGBMode(click.Choice):
         return values[0] if values[1] else "none"
 
 
-#: the options of ``render`` and the config fields they set (help and defaults: the fields')
+#: the options of ``render`` and the config fields they set (help and defaults: the fields', but for
+#: an option of several fields, which says its own help)
 RENDER_OPTIONS = (
     *HOUSE_OPTIONS,
     ConfigOption("--views-per-house", "views_per_house", type=click.IntRange(min=1)),
     ConfigOption("--cameras", "cameras", type=click.Path(exists=True, file_okay=False), convert=absolute_path,
                  metavar="DIR"),
-    ConfigOption("--resolution", ("width", "height"), type=Size(), metavar="WxH"),
+    ConfigOption("--resolution", ("width", "height"), type=Size(), metavar="WxH",
+                 help="frontal image size, width x height in pixels"),
     ConfigOption("--overhead-resolution", "view.overhead.resolution", type=click.IntRange(min=1)),
     ConfigOption("--seed", "seed"),
-    ConfigOption("--rgb", ("rgb.mode", "rgb.enabled"), type=RGBMode()),
+    ConfigOption("--rgb", ("rgb.mode", "rgb.enabled"), type=RGBMode(),
+                 help="how RGB images are made: raster (pyrender through EGL, fast), pathtraced (Mitsuba 3, "
+                      "global illumination, seconds per view) or none (no RGB images: the store has no rgb "
+                      "array); sets rgb.mode and rgb.enabled"),
     ConfigOption("--rgb-samples", "rgb.samples", type=click.IntRange(min=1)),
 )
 

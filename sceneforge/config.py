@@ -15,7 +15,7 @@ to the code it steers. This module is the one machinery they all go through:
   builds every option's help, shown default and type from, so they exist once.
 
 :class:`DatasetConfig` composes the configs of a render run
-(:class:`~sceneforge.houses.LoadOptions`, :class:`~sceneforge.cameras.CameraSamplerConfig`,
+(:class:`~sceneforge.houses.LoadOptions`, :class:`~sceneforge.camera_sampler.CameraSamplerConfig`,
 :class:`~sceneforge.view.ViewConfig`, :class:`~sceneforge.render.RenderConfig`) with the
 RGB switches and store settings defined here. A run resolves it once, validates it against
 ``schemas/config.schema.json`` and saves it, resolved, into the store it writes; the saved
@@ -37,7 +37,7 @@ from dataclasses import MISSING, dataclass, field, fields, is_dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
-from .cameras import CameraSamplerConfig
+from .camera_sampler import CameraSamplerConfig
 from .errors import SceneforgeError
 from .houses import LoadOptions
 from .render import RenderConfig

@@ -10,18 +10,20 @@ import numpy as np
 import pytest
 import trimesh
 
-from sceneforge.cameras import (
+from sceneforge.camera_sampler import (
     REJECT_REASONS,
     SCORE_TERMS,
-    Camera,
     CameraSamplerConfig,
     ViewStats,
+    sample_cameras,
+)
+from sceneforge.cameras import (
+    Camera,
     camera_from_pbrs,
     default_intrinsics,
     look_at_camera,
     opencv_to_opengl,
     read_pbrs_cameras,
-    sample_cameras,
     write_pbrs_cameras,
 )
 from sceneforge.conventions import NYU40_IDS, tol
@@ -97,7 +99,7 @@ def test_opencv_to_opengl():
 
 def test_cameras_and_store_validation_share_the_rotation_tolerance():
     # A pose a valid store holds must load as a Camera: both use conventions.tol.rotation.
-    from sceneforge.store import _rigid_problems
+    from sceneforge.store.validate import _rigid_problems
 
     def sheared(eps):
         pose = np.eye(4)

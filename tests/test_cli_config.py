@@ -13,7 +13,7 @@ import click
 import pytest
 from click.testing import CliRunner
 from sceneforge.cli.main import cli
-from sceneforge.cli.options import config_options
+from sceneforge.cli.options import ConfigOption, config_options
 from sceneforge.cli.render import RENDER_OPTIONS
 from sceneforge.cli.train import TRAIN_OPTIONS
 
@@ -61,6 +61,40 @@ def test_help_shows_the_field_docs_and_defaults():
     text = one_line(CliRunner().invoke(cli, ["render", "--help"]).output)
     assert "[default: 320x240]" in text and "[default: raster]" in text and "--strict / --no-strict" in text
     assert "config default" not in text
+
+
+def test_an_option_of_several_fields_says_its_own_help():
+    with pytest.raises(TypeError, match="several fields"):
+        ConfigOption("--size", ("width", "height"))
+    with pytest.raises(TypeError, match="several fields"):
+        ConfigOption("--seed", "seed", help="the seed")
+
+
+def _commands(group: click.Group, ctx: click.Context, path: tuple = ()):
+    for name in group.list_commands(ctx):
+        command = group.get_command(ctx, name)
+        yield (*path, name), command
+        if isinstance(command, click.Group):
+            yield from _commands(command, ctx, (*path, name))
+
+
+def test_every_option_help_reads_as_sentences():
+    """No help glues two texts into one sentence (it read "... the store's saved config
+    records it; render RGB images; without them ..."): every option of every command ends
+    its help as a sentence ends, and an option of several fields says its own."""
+    ctx = click.Context(cli)
+    seen = 0
+    for path, command in _commands(cli, ctx):
+        for param in command.params:
+            text = getattr(param, "help", None)
+            if text:
+                seen += 1
+                assert text.rstrip().endswith((".", ")", "]")), f"{' '.join(path)} {param.opts[0]}: {text!r}"
+    assert seen > 50
+    text = one_line(CliRunner().invoke(cli, ["render", "--help"]).output)
+    assert "records it; render" not in text and "pixels; frontal" not in text
+    assert "--rgb [raster|pathtraced|none] How RGB images are made: raster" in text
+    assert "--resolution WxH Frontal image size, width x height in pixels. [default: 320x240]" in text
 
 
 def _with_default(monkeypatch, cls, name, value):
@@ -173,7 +207,8 @@ def test_help_imports_no_torch():
 
 def test_overhead_explanation_is_one_library_call(small_house, tmp_path):
     from sceneforge.houses.formats.native import write_house
-    from sceneforge.overhead import OverheadConfig, explain_overhead_cameras
+    from sceneforge.overhead import OverheadConfig
+    from sceneforge.pipeline.explain import explain_overhead_cameras
 
     write_house(small_house, tmp_path / "small")
     cameras = tmp_path / "cameras.txt"

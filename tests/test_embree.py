@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sceneforge import depth_mesh, layers
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.raytrace import HouseTracer
 from sceneforge.raytrace import embree_backend as embree

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from sceneforge import depth_mesh, frustum
-from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import tol
 from sceneforge.frustum import (
     ViewMeshConfig,

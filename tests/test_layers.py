@@ -8,7 +8,8 @@ import pytest
 import trimesh
 
 from sceneforge import layers as layers_module
-from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import NYU40_IDS, tol
 from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance
 from sceneforge.layers import (

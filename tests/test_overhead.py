@@ -10,7 +10,8 @@ import pytest
 from click.testing import CliRunner
 from sceneforge.cli.main import cli
 
-from sceneforge.cameras import CameraSamplerConfig, look_at_camera, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import look_at_camera
 from sceneforge.conventions import ENVELOPE_LAYER, FRONT_LAYERS, OBJECT_SEGMENTS, in_classes, tol
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, discover, load
@@ -23,18 +24,20 @@ from sceneforge.overhead import (
     GravityFrame,
     OverheadCamera,
     OverheadConfig,
-    _frame_rays,
-    combine,
-    depth_statistics_box,
-    envelope_frustum_box,
     frontal_points_fast,
     gravity_frame,
     level_floor_y,
-    majority_room_box,
     overhead_camera,
     overhead_truth,
     place_overhead_camera,
 )
+from sceneforge.overhead.heuristics import (
+    combine,
+    depth_statistics_box,
+    envelope_frustum_box,
+    majority_room_box,
+)
+from sceneforge.overhead.points import _frame_rays
 from sceneforge.raytrace import HouseTracer
 
 from .conftest import box_instance, box_room

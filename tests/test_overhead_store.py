@@ -12,8 +12,8 @@ from sceneforge.cli.main import cli
 
 from sceneforge.config import load_config
 from sceneforge.houses import bundled_toy_dir
-from sceneforge.overhead import explain_overhead_cameras, explain_stored_view
 from sceneforge.pipeline import render_dataset
+from sceneforge.pipeline.explain import explain_overhead_cameras, explain_stored_view
 from sceneforge.store import open_store
 
 pytest.importorskip("zarr", reason="the store extra (zarr) is not installed")

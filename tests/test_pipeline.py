@@ -183,9 +183,9 @@ def test_workers_die_within_10_s_of_a_sigkilled_render(executor, small_house, tm
 
 
 def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, tmp_path, monkeypatch):
-    import sceneforge.store
+    import sceneforge.store.writer
 
-    real = sceneforge.store.write_shard
+    real = sceneforge.store.writer.write_shard
     calls = []
 
     def fails_third_time(*args):
@@ -194,7 +194,7 @@ def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, t
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(*args)
 
-    monkeypatch.setattr(sceneforge.store, "write_shard", fails_third_time)
+    monkeypatch.setattr(sceneforge.store.writer, "write_shard", fails_third_time)
     out = tmp_path / "full.zarr"
     with pytest.raises(SceneforgeError, match="No space left on device.*intact.*resume"):
         render_dataset("bundled:toy", str(out), load_config(None, TINY))
@@ -202,7 +202,7 @@ def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, t
     # a shard file torn after its marker was written (power loss before the data reached the disk)
     torn = out / "depth" / "c" / "0" / "0" / "0" / "0"
     torn.write_bytes(torn.read_bytes()[:10])
-    monkeypatch.setattr(sceneforge.store, "write_shard", real)
+    monkeypatch.setattr(sceneforge.store.writer, "write_shard", real)
     summary = render_dataset("bundled:toy", str(out), load_config(None, TINY))
     assert summary.shards_run == 5  # shard 1 was kept; the torn shard 0 and shards 2..5 were written
     assert files_of(out) == files_of(reference)
@@ -211,7 +211,7 @@ def test_disk_full_is_one_error_and_resume_keeps_intact_shards_only(reference, t
 def test_an_interrupted_run_names_an_added_house_and_update_takes_it_in(small_house, tmp_path, monkeypatch):
     import shutil
 
-    import sceneforge.store
+    import sceneforge.store.writer
 
     for name in ("a", "b"):
         small_house.id = name
@@ -221,7 +221,7 @@ def test_an_interrupted_run_names_an_added_house_and_update_takes_it_in(small_ho
     def disk_full(*args):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(sceneforge.store, "write_shard", disk_full)
+    monkeypatch.setattr(sceneforge.store.writer, "write_shard", disk_full)
     with pytest.raises(SceneforgeError, match="No space left") as failed:
         render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
     assert "intact" not in str(failed.value)  # no shard was written

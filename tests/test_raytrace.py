@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.conventions import tol
 from sceneforge.errors import HouseError, MissingDependencyError
 from sceneforge.houses import BUNDLED_TOY, House, discover, load, make_instance

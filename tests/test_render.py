@@ -22,14 +22,9 @@ from click.testing import CliRunner
 from PIL import Image
 from sceneforge.cli.doctor import doctor
 
-from sceneforge.cameras import (
-    Camera,
-    CameraSamplerConfig,
-    default_intrinsics,
-    look_at_camera,
-    pose_from_view,
-    sample_cameras,
-)
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
+from sceneforge.cameras import Camera, default_intrinsics, look_at_camera, pose_from_view
+from sceneforge.colour import linear_to_srgb, srgb_to_linear
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import BUNDLED_TOY, House, Instance, Material, Room, discover, load, make_instance
 from sceneforge.layers import frontal_layers
@@ -39,9 +34,7 @@ from sceneforge.render import (
     Renderer,
     house_batches,
     house_lights,
-    linear_to_srgb,
     room_lights,
-    srgb_to_linear,
     tonemap,
 )
 from sceneforge.render.lights import WINDOW_CONE, room_ambient

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sceneforge.cameras import CameraSamplerConfig, sample_cameras
+from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.houses import BUNDLED_TOY, discover, load
 from sceneforge.layers import instance_labels, layers_from_hits
 from sceneforge.overhead import FLOOR, OverheadConfig, overhead_instances, overhead_truth

@@ -31,10 +31,12 @@ Execution: in-process (``workers=1``), a pool of spawned processes (``workers=N`
 distributed cluster (``scheduler="tcp://host:8786"``, or ``"local"`` for a LocalCluster).
 Each worker process keeps one renderer and the last house it loaded.
 
-One module per step: :mod:`.plan` (steps 1 and 2), :mod:`.shards` (3), :mod:`.finalize` (4);
-:mod:`.staging` keeps the work in progress and decides what resumes, :mod:`.executors` runs
-the tasks, :mod:`.worker` is what a worker process keeps between them. The store itself is
-written through :class:`~sceneforge.store.StoreWriter`.
+One module per step: :mod:`.plan` (1), :mod:`.assign` (2), :mod:`.shards` (3),
+:mod:`.finalize` (4); :mod:`.staging` keeps the work in progress and decides what resumes,
+:mod:`.executors` runs the tasks, :mod:`.worker` is what a worker process keeps between them.
+The store itself is written through :class:`~sceneforge.store.StoreWriter`. :mod:`.explain`
+redoes a run's steps for one house up to the overhead camera, to show how it was chosen
+(``sceneforge overhead-camera``).
 """
 
 from __future__ import annotations
@@ -46,10 +48,11 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Protocol
 
 from ..store import StoreWriter
+from .assign import Plan, ViewPlan
 from .executors import executor
 from .finalize import finalize_store
 from .inputs import InputChanges
-from .plan import Plan, ViewPlan, plan_house, plan_houses
+from .plan import plan_house, plan_houses
 from .shards import ShardTask, render_shard
 from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, write_error
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..store import StoreWriter
-from .plan import Plan
+from .assign import Plan
 from .staging import STAGING, mesh_parts
 
 if TYPE_CHECKING:

@@ -1,12 +1,9 @@
-"""Steps 1 and 2 of a run: plan each house (load it, choose its cameras), then number the
-views house by house."""
+"""Step 1 of a run: plan each house (load it, choose its cameras), resuming from the
+records an interrupted run staged."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import zlib
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -23,10 +20,7 @@ if TYPE_CHECKING:
     from . import Progress
 
 
-# ------------------------------------------------------------------------ 1. plan houses
-
-
-def _house_rng(seed: int, house_id: str) -> np.random.Generator:
+def house_rng(seed: int, house_id: str) -> np.random.Generator:
     """The camera sampler's generator for a house: depends on the seed and the house id
     only, so a house gets the same cameras whatever other houses are in the run."""
     return np.random.default_rng([seed, zlib.crc32(house_id.encode())])
@@ -34,11 +28,11 @@ def _house_rng(seed: int, house_id: str) -> np.random.Generator:
 
 def sample_house_cameras(house, config: "DatasetConfig", tracer=None):
     """The cameras ``sceneforge render`` samples for ``house`` with ``config`` and the
-    sampler's report (:class:`~sceneforge.cameras.SamplerReport`): the same generator
+    sampler's report (:class:`~sceneforge.camera_sampler.SamplerReport`): the same generator
     (seed and house id), so ``houses inspect --cameras`` shows what render will choose."""
-    from ..cameras import sample_cameras
+    from ..camera_sampler import sample_cameras
 
-    return sample_cameras(house, config.views_per_house, _house_rng(config.seed, house.id), config.sampler, tracer)
+    return sample_cameras(house, config.views_per_house, house_rng(config.seed, house.id), config.sampler, tracer)
 
 
 def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", record: dict):
@@ -124,51 +118,3 @@ def plan_houses(writer: "StoreWriter", sources: list["HouseSource"], config: "Da
 def _plan_indexed(args) -> tuple[int, dict]:
     i, source, config = args
     return i, plan_house(source, config)
-
-
-# ----------------------------------------------------------------------- 2. assign views
-
-
-@dataclass(frozen=True)
-class ViewPlan:
-    """One view to compute: its index, house and camera."""
-
-    index: int
-    house: int
-    camera_id: int
-    K: np.ndarray
-    cam_to_world: np.ndarray
-
-
-@dataclass(frozen=True)
-class Plan:
-    """Every view of a run in order, and the houses they come from (records of step 1)."""
-
-    houses: tuple[dict, ...]
-    views: tuple[ViewPlan, ...]
-
-    @classmethod
-    def from_records(cls, records: list[dict]) -> "Plan":
-        views, houses = [], []
-        for h, rec in enumerate(records):
-            start = len(views)
-            if "failure" not in rec:
-                for cid, K, pose in zip(rec["camera_id"], rec["K"], rec["cam_to_world"]):
-                    views.append(ViewPlan(len(views), h, cid, np.array(K), np.array(pose)))
-            houses.append({**rec, "views": [start, len(views)]})
-        return cls(tuple(houses), tuple(views))
-
-    def shards(self, per_shard: int) -> list[tuple[int, int]]:
-        n = len(self.views)
-        return [(s, min(s + per_shard, n)) for s in range(0, n, per_shard)]
-
-    def digest(self, start: int, stop: int) -> str:
-        """SHA-256 (hex) of what views ``start:stop`` are made from: per view its index,
-        house id, the house's input fingerprint, camera id and camera. A shard's marker
-        keeps it: the shard is reused only where the plan gives the same digest."""
-        h = hashlib.sha256()
-        for v in self.views[start:stop]:
-            rec = self.houses[v.house]
-            h.update(json.dumps([v.index, rec["id"], rec.get("inputs"), v.camera_id, v.K.tolist(),
-                                 v.cam_to_world.tolist()], sort_keys=True).encode())
-        return h.hexdigest()

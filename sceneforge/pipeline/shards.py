@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from ..errors import SceneforgeError
 from ..store import StoreWriter
-from .plan import ViewPlan
+from .assign import ViewPlan
 from .staging import marker_key, mesh_key, put_mesh_part
 from .worker import WORKER
 

@@ -7,7 +7,7 @@
 - ``created.json``: the per-view arrays exist for that many views (step 2);
 - ``mesh/NNNNNN.npz``: the ground-truth meshes of shard N (step 3);
 - ``done/NNNNNN.json``: the marker of shard N, written last, atomically: its views, the
-  digest of their plan (:meth:`~.plan.Plan.digest`), the SHA-256 of every file it wrote and
+  digest of their plan (:meth:`~.assign.Plan.digest`), the SHA-256 of every file it wrote and
   its failures. A shard is redone unless its marker is intact, its plan digest is the
   run's and its files still hash as recorded.
 
@@ -146,7 +146,7 @@ def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list
     them, so it is kept wherever the new plan puts the same views at the same indices."""
     from ..config import DatasetConfig
     from ..store import open_store
-    from .plan import Plan
+    from .assign import Plan
 
     store = open_store(writer.url, writer.storage_options or None)
     config = DatasetConfig.from_dict(attrs["config"], what=f"{writer.url} config", recorded=True)

@@ -27,14 +27,14 @@ from .raster import (
     egl_devices,
     house_batches,
 )
-from .tonemap import linear_to_srgb, srgb_to_linear, tonemap
+from .tonemap import tonemap
 
 #: the RGB modes of ``sceneforge render --rgb`` that render something
 MODES = ("raster", "pathtraced")
 
 __all__ = ["FAR", "INSTALL_EGL", "INSTALL_RENDER", "MODES", "NEAR", "Batch", "EGLDevice", "Light", "RenderConfig",
-           "Renderer", "egl_devices", "house_batches", "house_lights", "linear_to_srgb", "open_renderer",
-           "room_lights", "srgb_to_linear", "tonemap"]
+           "Renderer", "egl_devices", "house_batches", "house_lights", "open_renderer",
+           "room_lights", "tonemap"]
 
 
 def open_renderer(mode: str, width: int, height: int, *, antialias: bool = False, config: RenderConfig | None = None,

@@ -47,10 +47,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..colour import srgb_to_linear
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import house_lights
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
-from .tonemap import ToneMapped, srgb_to_linear
+from .tonemap import ToneMapped
 
 if TYPE_CHECKING:
     from ..cameras import Camera

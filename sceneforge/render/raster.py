@@ -297,7 +297,7 @@ def _gl() -> SimpleNamespace:
         raise SceneforgeError(
             f"PYOPENGL_PLATFORM is {platform!r}, but sceneforge renders through EGL: unset it or set it to 'egl'"
         )
-    from ..store import load_compressors
+    from ..compressors import load_compressors
 
     load_compressors()  # before Mesa's libraries: see there
     try:

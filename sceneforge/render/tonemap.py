@@ -36,18 +36,6 @@ ACES = (2.51, 0.03, 2.43, 0.59, 0.14)
 TONES = ("aces", "clip")
 
 
-def srgb_to_linear(c):
-    """Linear values of sRGB-encoded values in [0, 1] (IEC 61966-2-1)."""
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c):
-    """sRGB-encoded values of linear values in [0, 1] (IEC 61966-2-1)."""
-    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-
-
 def aces(x):
     """Narkowicz's ACES filmic fit of exposed linear values, clipped to [0, 1]."""
     a, b, c, d, e = ACES
@@ -77,7 +65,7 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
     background : sRGB colour in [0, 1] of the pixels that see nothing
 
     The curve and the encoding are evaluated in float32 (:func:`aces` and
-    :func:`linear_to_srgb` are the float64 references; the two agree to a level of 8-bit
+    :func:`sceneforge.colour.linear_to_srgb` are the float64 references; the two agree to a level of 8-bit
     rounding), which takes a fifth of the time.
     """
     if tone not in TONES:

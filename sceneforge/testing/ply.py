@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..colour import linear_to_srgb
 from ..houses.model import House
-from ..render.tonemap import linear_to_srgb
 
 
 def write_ply(path: Path, house: House, names: list[str]) -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...render.tonemap import srgb_to_linear
+from ...colour import srgb_to_linear
 from ..model import Material
 from .meshio import Mesh, MeshFileError, Warn, compact, fan, find_image, ignore
 

@@ -25,9 +25,10 @@ platform.
 
 The modules follow the steps: :mod:`.primitives` (boxes, cylinders, placements),
 :mod:`.furniture` (the builders), :mod:`.planner` (rooms, openings, placing furniture),
-:mod:`.house` (a plan made a :class:`~sceneforge.houses.House`), :mod:`.bundle` (batches
-and the bundled set), :mod:`.hard_cases` (room-sized rugs, two levels and stairs, hidden
-floors and ceilings: :class:`ToyOptions`, off by default). Regenerate the bundled houses with
+:mod:`.colours` (a colour of its own per instance), :mod:`.house` (a plan made a
+:class:`~sceneforge.houses.House`), :mod:`.bundle` (batches and the bundled set),
+:mod:`.hard_cases` (room-sized rugs, two levels and stairs, hidden floors and ceilings:
+:class:`ToyOptions`, off by default). Regenerate the bundled houses with
 ``python -m sceneforge.houses.toy --bundle``.
 """
 

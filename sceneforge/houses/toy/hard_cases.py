@@ -25,6 +25,7 @@ import numpy as np
 
 from ...conventions import NYU40_IDS, NYU40_NAMES
 from ..model import House, Level, Material, Room, make_instance
+from .colours import PALETTE, instance_colour
 from .planner import CEILING_THICKNESS, FLOOR_THICKNESS, Opening
 from .primitives import box, mesh
 
@@ -76,14 +77,12 @@ def apply_hard_cases(toy, options: ToyOptions, rng: np.random.Generator):
     if options.hidden_ceiling:
         first = next(r.id for r in rooms if r.level == levels[-1].id)
         parts = [p for p in parts if not (p.room_id == first and p.category == NYU40_IDS["ceiling"])]
-    from .house import _PALETTE, _colour  # the generator's colour rule, shared
-
     used = {p.material.base_color[:3] for p in parts if p.material is not None}
     house = House(id=toy.house.id, instances=[], rooms=rooms, levels=levels,
                   source_format=toy.house.source_format, source_path=toy.house.source_path)
     for p in parts:
-        family = NYU40_NAMES[p.category] if NYU40_NAMES[p.category] in _PALETTE else "otherprop"
-        material = p.material or Material(base_color=_colour(rng, family, used))
+        family = NYU40_NAMES[p.category] if NYU40_NAMES[p.category] in PALETTE else "otherprop"
+        material = p.material or Material(base_color=instance_colour(rng, family, used))
         make_instance(house, name=p.name, category=p.category, label=p.label, room_id=p.room_id,
                       vertices=p.vertices, faces=p.faces, material=material)
     kept = {i.name for i in house.instances}

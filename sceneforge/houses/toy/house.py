@@ -9,24 +9,10 @@ import numpy as np
 from ...conventions import NYU40_IDS
 from ...errors import SceneforgeError
 from ..model import House, Level, Material, Room, make_instance
+from .colours import instance_colour
 from .hard_cases import ToyOptions, apply_hard_cases
 from .planner import Opening, envelope, plan_house
 from .primitives import mesh
-
-#: a base colour per label family; each instance jitters it into a colour of its own
-_PALETTE = {
-    "wall": (0.85, 0.83, 0.78), "floor": (0.55, 0.40, 0.28), "ceiling": (0.93, 0.93, 0.91),
-    "door": (0.60, 0.45, 0.30), "window": (0.90, 0.90, 0.92), "curtain": (0.70, 0.25, 0.28),
-    "blinds": (0.85, 0.85, 0.78), "picture": (0.30, 0.50, 0.70), "floor_mat": (0.60, 0.30, 0.30),
-    "mirror": (0.80, 0.86, 0.90), "bed": (0.45, 0.35, 0.60), "pillow": (0.92, 0.88, 0.82),
-    "night_stand": (0.50, 0.35, 0.20), "lamp": (0.92, 0.84, 0.50), "dresser": (0.55, 0.40, 0.25),
-    "box": (0.70, 0.60, 0.40), "bookshelf": (0.45, 0.30, 0.20), "books": (0.25, 0.40, 0.60),
-    "sofa": (0.30, 0.45, 0.35), "table": (0.60, 0.45, 0.30), "otherprop": (0.85, 0.85, 0.85),
-    "cabinet": (0.65, 0.55, 0.45), "television": (0.12, 0.12, 0.14), "counter": (0.75, 0.75, 0.72),
-    "refridgerator": (0.90, 0.90, 0.92), "chair": (0.50, 0.30, 0.20), "bathtub": (0.95, 0.95, 0.95),
-    "toilet": (0.94, 0.94, 0.94), "sink": (0.92, 0.92, 0.94), "desk": (0.55, 0.45, 0.35),
-    "shelves": (0.50, 0.40, 0.30),
-}
 
 
 @dataclass
@@ -75,7 +61,7 @@ def build_toy_house(seed: int, house_id: str | None = None, options: ToyOptions 
             inst = make_instance(
                 house, name=f"{room.id}/{piece.label}_{k}", category=NYU40_IDS[piece.category],
                 label=piece.label, room_id=room.id, vertices=v, faces=f,
-                material=Material(base_color=_colour(rng, piece.category, used)),
+                material=Material(base_color=instance_colour(rng, piece.category, used)),
             )
             names[id(piece)] = inst.name
     pieces = [p for room in rooms for p in room.pieces]
@@ -90,16 +76,6 @@ def build_toy_house(seed: int, house_id: str | None = None, options: ToyOptions 
         return toy
     # a generator of its own: the default house's draws stay as they are
     return apply_hard_cases(toy, options, np.random.default_rng([seed, 1]))
-
-
-def _colour(rng, category: str, used: set) -> tuple[float, float, float, float]:
-    """The category's base colour, jittered until no other instance of the house has it."""
-    base = np.array(_PALETTE[category])
-    while True:
-        rgb = tuple(round(float(c), 3) for c in np.clip(base + rng.uniform(-0.1, 0.1, 3), 0.02, 0.98))
-        if rgb not in used:
-            used.add(rgb)
-            return (*rgb, 1.0)
 
 
 def generate_house(seed: int, house_id: str | None = None, options: ToyOptions | None = None) -> House:
