@@ -6,11 +6,11 @@ Three scores, each for the model (the predictions of ``sceneforge predict``) and
 baseline that knows only the training houses of the split and never looks at the image:
 
 - ``depth_absrel``: mean ``|d̂ − d| / d`` over the object pixels of D1..D4 (finite true
-  depth) that the model predicted; the baseline predicts each pixel's mean depth of that
-  layer over the training views (the layer's mean over every pixel where no training view
-  has one), pooled over the four layers. Both are scored on the same pixels; ``depth_coverage`` is the fraction of the
-  object pixels they are (the model leaves a pixel out where its segmentation sees no
-  object there: the paper's masks).
+  depth) that the model predicted, the four layers' pixels pooled; the baseline predicts
+  each pixel's mean depth of that layer over the training views (the layer's mean over
+  every pixel where no training view has one). Both are scored on the same pixels;
+  ``depth_coverage`` is the fraction of the object pixels they are (the model leaves a
+  pixel out where its segmentation sees no object there: the paper's masks).
 - ``seg_miou``: intersection over union per segmentation class
   (:data:`~sceneforge.conventions.NYU40_TO_SEG`: envelope classes are background), pooled
   over layers 1 and 3 of every scored view, averaged over the classes present in the
