@@ -226,7 +226,7 @@ def test_an_edited_output_fails(tmp_path):
     block = next(b for b in blocks(ROOT / "README.md") if b.text.startswith("$ sceneforge toy-houses"))
     cwd = fresh_checkout(tmp_path)
     assert run_block(block, cwd) == []
-    edited = Block(block.doc, block.line, block.language, re.sub(r"instances (\d+)", "instances 99", block.text, 1))
+    edited = Block(block.doc, block.line, block.language, re.sub(r"instances (\d+)", "instances 99", block.text, count=1))
     shutil.rmtree(cwd / "demo")
     problems = run_block(edited, cwd)
     assert len(problems) == 1 and "-toy_7_000  rooms 4  instances 99" in problems[0], problems
