@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from ..errors import SceneforgeError
+from ..errors import SceneforgeError, plural
 from .inputs import fingerprint, reads
 from .staging import house_key
 from .worker import WORKER
@@ -56,7 +56,7 @@ def check_camera_folder(cameras: str, house_ids: list[str]) -> None:
         raise SceneforgeError(f"--cameras {cameras}: no such folder")
     if house_ids and not any((folder / hid / "room_camera.txt").is_file() for hid in house_ids):
         raise SceneforgeError(
-            f"--cameras {cameras}: no camera file for any of the {len(house_ids)} houses (expected "
+            f"--cameras {cameras}: no camera file for any of the {plural(len(house_ids), 'house')} (expected "
             f"{folder / house_ids[0] / 'room_camera.txt'}, one folder per house id)")
 
 
