@@ -5,20 +5,31 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 DEMO   ?= demo
 # where pip gets torch: empty = the default index; on a machine with no NVIDIA GPU where pip
-# would take the CUDA build, TORCH_INDEX=https://download.pytorch.org/whl/cpu gets the CPU one
-TORCH_INDEX ?=
+# would take the CUDA build, TORCH_INDEX=https://download.pytorch.org/whl/cpu gets the CPU one.
+# The index of the last install is remembered in $(TORCH_FILE): a later `make` keeps it, and a
+# different TORCH_INDEX (`TORCH_INDEX=` for the default index) reinstalls torch from that one.
+TORCH_FILE  := $(VENV)/.torch-index
+TORCH_INDEX ?= $(shell cat $(TORCH_FILE) 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install demo test bench lint clean
+.PHONY: help install demo test bench lint clean FORCE
 
 help:  ## list the targets
 	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
 
-$(STAMP): pyproject.toml setup.py sceneforge/raytrace/_embree.cpp scripts/system-deps.sh
+# rewritten only when TORCH_INDEX differs from the last install's, so that it alone redoes the install
+$(TORCH_FILE): FORCE
+	@mkdir -p $(VENV)
+	@if [ ! -f $@ ] || [ "$$(cat $@)" != "$(TORCH_INDEX)" ]; then printf '%s\n' "$(TORCH_INDEX)" > $@; fi
+
+$(STAMP): pyproject.toml setup.py sceneforge/raytrace/_embree.cpp scripts/system-deps.sh $(TORCH_FILE)
 	PYTHON=$(PYTHON) bash scripts/system-deps.sh
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
-	# torch first and pinned (README "Two commands": which build that is, and TORCH_INDEX)
+	# torch first and pinned (README "Two commands": which build that is, and TORCH_INDEX); pip
+	# keeps an installed torch==2.13.0 whatever the index, so a new index uninstalls it first
+	$(if $(filter $(TORCH_FILE),$?),@echo "torch: installing from $(or $(TORCH_INDEX),the default index)"; \
+	  $(PY) -m pip uninstall --quiet --yes torch 2>/dev/null || true)
 	$(PY) -m pip install --quiet torch==2.13.0 $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PY) -m pip install --quiet -e ".[all]"
 	@$(PY) -c "from sceneforge.raytrace import default_backend as d; print('ray tracing engine:', d())"

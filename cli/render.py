@@ -147,7 +147,7 @@ def validate(store, quiet):
 
 @click.command()
 @click.argument("store")
-@click.option("--view", "index", type=int, required=True, help="View index (negative counts from the end).")
+@click.option("--view", "index", type=int, required=True, help="View index, 0 to the store's views − 1.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="PNG to write. Default: <store name>_view<I>.png in the current folder.")
 @click.option("--3d", "ply", type=click.Path(dir_okay=False), default=None,
@@ -165,16 +165,17 @@ def show(store, index, output, ply, truth):
     for path, what in ((output, "panel"), (ply, "point cloud")):
         check_output(path, what)
     s = open_store(store)
-    if not -len(s) <= index < len(s):
-        raise click.BadParameter(f"the store has {plural(len(s), 'view')}", param_hint="--view")
+    if not 0 <= index < len(s):
+        span = f"numbered 0 to {len(s) - 1}" if len(s) else "none"
+        raise click.BadParameter(f"{index}: the store has {plural(len(s), 'view')} ({span})", param_hint="--view")
     gt = None
     if truth is not None:
         from sceneforge.evaluate.stores import matching_view
 
         gt = open_store(truth)
-        matching_view(s, gt, index % len(s))
+        matching_view(s, gt, index)
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
-    png = Path(output or f"{name}_view{index % len(s)}.png")
+    png = Path(output or f"{name}_view{index}.png")
     check_output(png, "panel")
     with atomic_output(png) as tmp:
         write_panel(s, index, tmp, truth=gt)

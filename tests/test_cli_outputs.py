@@ -102,3 +102,46 @@ def test_a_bad_device_is_one_red_line(command, device, store, tmp_path):
     lines = res.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: --device {device}"), res.output
     assert not (tmp_path / "run").exists() and not (tmp_path / "pred.zarr").exists()
+
+
+def test_show_refuses_a_view_out_of_range(store, tmp_path):
+    """``--view -1`` used to show the last view without a word; views are numbered 0..N-1."""
+    res = CliRunner().invoke(cli, ["show", str(store), "--view", "-1", "-o", str(tmp_path / "p.png")])
+    assert res.exit_code == 2
+    assert "-1: the store has 3 views (numbered 0 to 2)" in res.output
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_render_refuses_a_cameras_folder_with_no_camera_file(tmp_path):
+    """A wrong ``--cameras`` folder used to fail every house into a store of no views."""
+    (tmp_path / "cams" / "elsewhere").mkdir(parents=True)
+    res = CliRunner().invoke(cli, ["render", "bundled:toy", str(tmp_path / "t.zarr"), "--cameras",
+                                   str(tmp_path / "cams")])
+    assert res.exit_code == EXIT_ERROR, res.output
+    assert "no camera file for any of the 3 houses" in res.output
+    assert str(tmp_path / "cams" / "toy_0_000" / "room_camera.txt") in res.output
+    assert not (tmp_path / "t.zarr").exists()
+
+
+def test_validate_calls_a_store_of_no_views_invalid(tmp_path, small_house):
+    """A store whose every house failed holds no views: not valid."""
+    from sceneforge.errors import EXIT_FAILURES
+    from sceneforge.houses.formats.native import write_house
+
+    small_house.instances = [i for i in small_house.instances if i.name != "floor"]  # no floor: no camera
+    write_house(small_house, tmp_path / "houses" / "small")
+    out = tmp_path / "none.zarr"
+    render_dataset(str(tmp_path / "houses"), str(out), load_config(None, TINY))
+    res = CliRunner().invoke(cli, ["validate", str(out)])
+    assert res.exit_code == EXIT_FAILURES, res.output
+    assert "no views: the store holds none (1 house failed" in res.output
+
+
+def test_format_that_finds_nothing_names_the_format_found(tmp_path, small_house):
+    """``--format front3d`` on a SUNCG root names the format that is there."""
+    from sceneforge.testing.suncg import write_house
+
+    write_house(small_house, tmp_path / "suncg")
+    res = CliRunner().invoke(cli, ["houses", "inspect", str(tmp_path / "suncg"), "--format", "front3d"])
+    assert res.exit_code == EXIT_ERROR, res.output
+    assert "no front3d house found (--format front3d); it holds suncg houses: pass --format suncg" in res.output

@@ -1,5 +1,5 @@
 """Imports run downward only (STYLE 14): no import cycles, and every module imports from its
-own layer or those below, in the layer order README's Architecture section states.
+own layer or those below, in the layer order docs/architecture.md states.
 
 Every import that runs counts, function-level ones included; those under
 ``if TYPE_CHECKING:`` do not (they never run). A module importing its own package's
@@ -129,10 +129,10 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def layer_order(readme: Path = ROOT / "README.md") -> list[list[str]]:
-    """README Architecture's numbered layer list, bottom first: per layer, the module names
+def layer_order(readme: Path = ROOT / "docs" / "architecture.md") -> list[list[str]]:
+    """docs/architecture.md's numbered layer list, bottom first: per layer, the module names
     (``__init__`` is the ``sceneforge`` package's own module)."""
-    section = readme.read_text().split("\n## Architecture\n", 1)[1].split("\n## ", 1)[0]
+    section = re.split(r"^#{1,2} Architecture\n", readme.read_text(), maxsplit=1, flags=re.M)[1].split("\n## ", 1)[0]
     layers = []
     for line in section.splitlines():
         match = re.match(r"(\d+)\. ((?:`[\w.]+`(?:, )?)+):", line)
@@ -166,9 +166,9 @@ def test_no_import_cycles(graph):
 
 def test_every_module_imports_only_its_own_layer_or_below(graph):
     layers = layer_order()
-    assert len(layers) >= 8, "README's Architecture section lists the layers as '1. `name`, ...: what'"
+    assert len(layers) >= 8, "docs/architecture.md lists the layers as '1. `name`, ...: what'"
     unplaced = sorted(m for m in graph if layer_of(m, layers) is None)
-    assert unplaced == [], "modules in no layer of README's Architecture list"
+    assert unplaced == [], "modules in no layer of docs/architecture.md's list"
     upward = sorted(f"{m} (layer {layer_of(m, layers) + 1}) imports {t} (layer {layer_of(t, layers) + 1})"
                     for m, targets in graph.items() for t in targets if layer_of(t, layers) > layer_of(m, layers))
     assert upward == []

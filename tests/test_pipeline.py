@@ -328,7 +328,8 @@ def test_rerun_of_a_complete_store_does_nothing_and_other_config_is_refused(refe
     shutil.copytree(reference, out)
     summary = render_dataset("bundled:toy", str(out), load_config(None, TINY))
     assert summary.already_complete and summary.views == 12
-    with pytest.raises(SceneforgeError, match="another store"):
+    # the refusal says what differs, not only that something does
+    with pytest.raises(SceneforgeError, match=r"another store \(config\.seed: 0 there, 1 here\)"):
         render_dataset("bundled:toy", str(out), load_config(None, {**TINY, "seed": 1}))
     assert files_of(out) == files_of(reference)
 
@@ -425,14 +426,28 @@ def test_camera_files_are_used_in_order_with_their_line_numbers(small_house, tmp
 
 
 def test_missing_camera_file_fails_that_house(small_house, tmp_path):
+    for name in ("room", "other"):
+        small_house.id = name
+        write_house(small_house, tmp_path / "houses" / name)
+    path = tmp_path / "cams" / "room" / "room_camera.txt"
+    path.parent.mkdir(parents=True)
+    write_pbrs_cameras(path, [look_at_camera((1.0, 1.5, 1.5), (-1.0, -0.3, -1.0), width=32, height=24)])
+    config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False}})
+    summary = render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
+    assert summary.failed_houses == ("other",) and summary.views == 1
+    assert "no camera file" in summary.failures[0]["reason"]
+    assert validate_store(str(tmp_path / "out.zarr")) == []
+
+
+def test_a_cameras_folder_with_no_camera_file_is_refused(small_house, tmp_path):
+    """A wrong folder would fail every house into a store of no views."""
     small_house.id = "room"
     write_house(small_house, tmp_path / "houses" / "room")
     (tmp_path / "cams").mkdir()
     config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False}})
-    summary = render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
-    assert summary.failed_houses == ("room",) and summary.views == 0
-    assert "no camera file" in summary.failures[0]["reason"]
-    assert validate_store(str(tmp_path / "out.zarr")) == []
+    with pytest.raises(SceneforgeError, match=r"no camera file for any of the 1 house \(expected .*room_camera"):
+        render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
+    assert not (tmp_path / "out.zarr").exists()
 
 
 def test_the_store_can_live_on_an_fsspec_filesystem():

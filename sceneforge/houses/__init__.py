@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..errors import HouseError, SceneforgeError, UnknownFormatError
-from .formats import REGISTRY, HouseSource, find
+from .formats import REGISTRY, UNREADABLE, HouseSource, find
 from .model import House, Instance, Level, Material, Room, make_instance
 
 __all__ = [
@@ -86,12 +86,26 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
     if fmt is not None and fmt not in FORMATS:
         raise UnknownFormatError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
     found = find(path, None if fmt is None else REGISTRY[fmt])
+    if not found and fmt is not None:
+        formats = sorted({s.format for s in _find_any(path)} - {UNREADABLE})
+        if formats:
+            raise UnknownFormatError(
+                f"{path}: no {fmt} house found (--format {fmt}); it holds {' and '.join(formats)} houses: "
+                f"pass --format {formats[0]} or leave --format out")
     if not found:
         raise UnknownFormatError(
             f"{path}: no house found (supported: sceneforge house.json, glTF/GLB, OBJ, PLY, "
             "SUNCG root or house, 3D-FRONT root or scene JSON)"
         )
     return house_ids(found, path)
+
+
+def _find_any(path: Path) -> list[HouseSource]:
+    """What :func:`find` recognises at ``path`` in any format (nothing where it raises)."""
+    try:
+        return find(path)
+    except UnknownFormatError:
+        return []
 
 
 def house_ids(sources: list[HouseSource], scanned: Path) -> list[HouseSource]:

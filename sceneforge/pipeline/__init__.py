@@ -52,7 +52,7 @@ from .assign import Plan, ViewPlan
 from .executors import executor
 from .finalize import finalize_store
 from .inputs import InputChanges
-from .plan import plan_house, plan_houses
+from .plan import check_camera_folder, plan_house, plan_houses
 from .shards import ShardTask, render_shard
 from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, write_error
 
@@ -130,6 +130,8 @@ def render_dataset(
 
     t_start = time.perf_counter()
     sources = discover(houses, config.houses.format)
+    if config.cameras is not None:
+        check_camera_folder(config.cameras, [s.id for s in sources])
     writer = StoreWriter(out, storage_options)
     try:
         with writer:

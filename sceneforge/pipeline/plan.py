@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from ..errors import SceneforgeError
+from ..errors import SceneforgeError, plural
 from .inputs import fingerprint, reads
 from .staging import house_key
 from .worker import WORKER
@@ -44,6 +44,20 @@ def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", recor
             return WORKER.load(source, config)
         finally:
             record["inputs"] = fingerprint(paths)
+
+
+def check_camera_folder(cameras: str, house_ids: list[str]) -> None:
+    """Refuse a ``--cameras`` folder that holds a camera file for none of the houses (a
+    wrong folder would otherwise fail every house and leave a store of no views)."""
+    from pathlib import Path
+
+    folder = Path(cameras)
+    if not folder.is_dir():
+        raise SceneforgeError(f"--cameras {cameras}: no such folder")
+    if house_ids and not any((folder / hid / "room_camera.txt").is_file() for hid in house_ids):
+        raise SceneforgeError(
+            f"--cameras {cameras}: no camera file for any of the {plural(len(house_ids), 'house')} (expected "
+            f"{folder / house_ids[0] / 'room_camera.txt'}, one folder per house id)")
 
 
 def _file_cameras(source: "HouseSource", config: "DatasetConfig"):

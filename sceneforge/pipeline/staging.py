@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterator
 
@@ -58,6 +59,23 @@ def mesh_key(shard: int) -> str:
 def identity(config: "DatasetConfig", houses: str) -> dict:
     """What makes two runs the same run (as the store's attributes record it)."""
     return {"schema_version": SCHEMA_VERSION, "houses_source": houses, "config": config.to_dict()}
+
+
+def identity_differences(stored: dict, wanted: dict, limit: int = 3) -> str:
+    """What differs between a stored run identity and this run's, for the refusal message:
+    ``"config.width: 320 there, 64 here; houses_source: ..."`` (the first ``limit``
+    differing leaves, dotted paths), or ``""`` when they are equal."""
+    found: list[str] = []
+
+    def walk(a, b, path: str) -> None:
+        if isinstance(a, dict) and isinstance(b, dict):
+            for key in sorted(set(a) | set(b), key=str):
+                walk(a.get(key), b.get(key), f"{path}.{key}" if path else str(key))
+        elif a != b:
+            found.append(f"{path}: {json.dumps(a)} there, {json.dumps(b)} here")
+
+    walk(stored, wanted, "")
+    return "; ".join(found[:limit]) + (f"; and {len(found) - limit} more" if len(found) > limit else "")
 
 
 @dataclass(frozen=True)
@@ -103,9 +121,10 @@ def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, ov
         return Preparation("resume", found, tuple(sorted(failed)))
     if writer.exists("zarr.json"):
         attrs = writer.attrs()
-        if not (attrs.get("complete") and {k: attrs.get(k) for k in run_identity} == run_identity):
-            raise SceneforgeError(f"{writer.url}: holds another store; pass --overwrite to replace it, or choose "
-                                  "another path")
+        differs = identity_differences({k: attrs.get(k) for k in run_identity}, run_identity)
+        if not attrs.get("complete") or differs:
+            raise SceneforgeError(f"{writer.url}: holds another store ({differs or 'not marked complete'}); "
+                                  "pass --overwrite to replace it, or choose another path")
         found = changes(attrs["houses"], house_ids)
         _refuse_unless(found, update, writer, "this store was rendered")
         failed = {f["house"] for f in attrs["failures"]} & set(house_ids) if retry_failed else set()

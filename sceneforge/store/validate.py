@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
-from ..errors import SceneforgeError
+from ..errors import SceneforgeError, plural
 from .layout import MESH_KINDS, array_specs, sizes_of
 from .reader import SceneStore, arrays_of, open_group
 from .writer import StoreWriter
@@ -117,6 +117,11 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
         config = DatasetConfig.from_dict(attrs["config"], what="config attribute", recorded=True)
     except SceneforgeError as e:
         check.problems.append(str(e))
+        return check
+    if n == 0:
+        failed = len({f["house"] for f in attrs.get("failures", [])})
+        check.problems.append(f"no views: the store holds none ({plural(failed, 'house')} failed; its "
+                              "failure log says why)")
         return check
     check.problems += _check_layout(doc["arrays"], config, n)
     check.problems += _check_attrs(attrs, n)
