@@ -35,10 +35,6 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 RUN_LANGUAGES = {"bash", "console", "sh", "python"}
 #: heading → why none of the section's blocks runs here (its owner marks them one by one)
-NOT_RUN_SECTIONS = {
-    "### `sceneforge train` and `sceneforge predict`":
-        "the learning recipe takes ~25 minutes; `benchmarks/learning_check.sh` is its runnable form",
-}
 MARK = re.compile(r"^<!-- (not run|needs|compare): (.+?) -->$")
 TIMING = re.compile(r"\d+(?:\.\d+)?\s?(?:ms|s|min|views/s)(?![\w/])")
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
@@ -81,12 +77,9 @@ class Block:
 def blocks(doc: Path, text: str | None = None) -> list[Block]:
     """Every fenced block of ``doc`` (or of ``text``, read as ``doc``) with its marks."""
     lines = (doc.read_text() if text is None else text).splitlines()
-    found, section, i = [], None, 0
+    found, i = [], 0
     while i < len(lines):
         line = lines[i]
-        heading = re.match(r"^(#+) ", line)
-        if heading and (section is None or len(heading.group(1)) <= section[1]):
-            section = (line, len(heading.group(1))) if line in NOT_RUN_SECTIONS else None
         if line.startswith("```"):
             end = next(k for k in range(i + 1, len(lines)) if lines[k].startswith("```"))
             marks, k = {}, i - 1
@@ -94,8 +87,6 @@ def blocks(doc: Path, text: str | None = None) -> list[Block]:
                 key, value = MARK.match(lines[k]).groups()
                 marks[key] = value
                 k -= 1
-            if section is not None:
-                marks.setdefault("not run", NOT_RUN_SECTIONS[section[0]])
             found.append(Block(doc, i + 1, line[3:].strip(), "\n".join(lines[i + 1:end]) + "\n", marks))
             i = end
         i += 1
@@ -193,14 +184,14 @@ def test_every_block_is_run_or_marked_with_a_reason():
                 assert block.marks["compare"].startswith("labels"), f"{block.where}: unknown compare mode"
 
 
-def test_marks_and_sections_decide_what_runs():
+def test_marks_decide_what_runs():
     text = ("# x\n<!-- not run: needs a GPU -->\n```bash\nsceneforge train a\n```\n"
-            "### `sceneforge train` and `sceneforge predict`\n```bash\nsceneforge train b\n```\n"
-            "#### Training faster\n```bash\ntorchrun x\n```\n## Input formats\n```bash\nsceneforge render c\n```\n")
+            "<!-- needs: nowhere/x -->\n<!-- compare: labels (machine) -->\n```console\n$ sceneforge doctor\n```\n"
+            "## Input formats\n```bash\nsceneforge render c\n```\n")
     found = blocks(ROOT / "README.md", text)
-    assert [b.runs for b in found] == [False, False, False, True]
-    assert found[0].marks["not run"] == "needs a GPU"
-    assert found[1].marks["not run"] == NOT_RUN_SECTIONS["### `sceneforge train` and `sceneforge predict`"]
+    assert [b.runs for b in found] == [False, True, True]  # "needs" is decided where the walkthrough runs
+    assert found[0].marks == {"not run": "needs a GPU"}
+    assert found[1].marks == {"needs": "nowhere/x", "compare": "labels (machine)"}
 
 
 def test_shown_output_allows_elisions_and_timings_only():
