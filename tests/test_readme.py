@@ -114,12 +114,15 @@ def mismatch(shown: list[str], printed: str, mode: str = "") -> str:
 
 
 def fresh_checkout(tmp: Path) -> Path:
-    """The tracked files copied into ``tmp/sceneforge`` (``../shared`` linked beside it), and
-    ``tmp/bin`` with ``sceneforge`` and ``python`` running this interpreter."""
+    """The tracked files and the built extension copied into ``tmp/sceneforge`` (``../shared``
+    linked beside it), and ``tmp/bin`` with ``sceneforge`` and ``python`` running this
+    interpreter."""
     clone = tmp / "sceneforge"
     names = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, text=True,
                            check=True).stdout.split("\0")
-    for name in filter(None, names):
+    # and the in-place build of the ray-tracing extension, as `make install` leaves it in a checkout
+    built = [str(p.relative_to(ROOT)) for p in (ROOT / "sceneforge" / "raytrace").glob("_embree*.so")]
+    for name in filter(None, names + built):
         if (ROOT / name).is_file():
             (clone / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(ROOT / name, clone / name)
