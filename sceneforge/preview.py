@@ -63,10 +63,19 @@ def _footprint(overhead_cam_to_world: np.ndarray, extent: float) -> np.ndarray:
     return t + corners[:, :1] * R[:, 0] + corners[:, 1:] * R[:, 1]
 
 
+def _image(ax, data, title, cmap=None, fontsize=10, **kw) -> None:
+    """``data`` on ``ax`` pixel for pixel under ``title``; NaN (no surface) shows white."""
+    import matplotlib
+
+    if cmap is not None:
+        cmap = (matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap).with_extremes(bad="white")
+    ax.imshow(data, interpolation="nearest", cmap=cmap, **kw)
+    ax.set_title(title, fontsize=fontsize)
+
+
 def view_panel(store: "SceneStore", index: int) -> "matplotlib.figure.Figure":
     """The panel of view ``index`` as a matplotlib figure (Agg, no display needed)."""
     try:
-        import matplotlib
         from matplotlib.colors import ListedColormap
         from matplotlib.figure import Figure
     except ImportError as e:
@@ -84,14 +93,8 @@ def view_panel(store: "SceneStore", index: int) -> "matplotlib.figure.Figure":
         ax.set_xticks([])
         ax.set_yticks([])
 
-    def image(ax, data, title, cmap=None, **kw):
-        if cmap is not None:  # NaN (no surface) shows white
-            cmap = (matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap).with_extremes(bad="white")
-        ax.imshow(data, interpolation="nearest", cmap=cmap, **kw)
-        ax.set_title(title, fontsize=10)
-
     if "rgb" in v:
-        image(axes[0][0], v["rgb"], "RGB")
+        _image(axes[0][0], v["rgb"], "RGB")
     else:
         axes[0][0].set_title("RGB (not rendered)", fontsize=10)
     depth = v["depth"]
@@ -99,11 +102,11 @@ def view_panel(store: "SceneStore", index: int) -> "matplotlib.figure.Figure":
     vmax = float(finite.max()) if finite.size else 1.0
     for k, name in enumerate(LAYER_NAMES):
         ax = axes[0][k + 1] if k < 4 else axes[1][0]
-        image(ax, depth[k], f"{name} (m)", cmap="viridis", vmin=0.0, vmax=vmax)
+        _image(ax, depth[k], f"{name} (m)", cmap="viridis", vmin=0.0, vmax=vmax)
     fig.colorbar(axes[1][0].images[0], ax=[*axes[0][1:], axes[1][0]], label="planar depth (m), white = no surface",
                  shrink=0.8)
     for k, name in enumerate(("D1", "D3", "D5")):
-        image(axes[1][k + 1], v["category"][k], f"class of {name}", cmap=classes, vmin=0, vmax=len(NYU40_NAMES) - 1)
+        _image(axes[1][k + 1], v["category"][k], f"class of {name}", cmap=classes, vmin=0, vmax=len(NYU40_NAMES) - 1)
     present = sorted(set(np.unique(v["category"]).tolist()) | set(np.unique(v["overhead_category"]).tolist()))
     axes[1][4].axis("off")
     axes[1][4].set_title("classes", fontsize=10)
@@ -112,9 +115,9 @@ def view_panel(store: "SceneStore", index: int) -> "matplotlib.figure.Figure":
         axes[1][4].scatter([0.05], [y], marker="s", s=60, color=classes(c), edgecolors="k",
                            transform=axes[1][4].transAxes)
         axes[1][4].text(0.12, y, NYU40_NAMES[c], va="center", fontsize=9, transform=axes[1][4].transAxes)
-    image(axes[2][0], v["overhead_height"], "overhead height above floor (m)", cmap="magma", vmin=0.0)
+    _image(axes[2][0], v["overhead_height"], "overhead height above floor (m)", cmap="magma", vmin=0.0)
     fig.colorbar(axes[2][0].images[0], ax=axes[2][0], shrink=0.8)
-    image(axes[2][1], v["overhead_category"], "overhead classes", cmap=classes, vmin=0, vmax=len(NYU40_NAMES) - 1)
+    _image(axes[2][1], v["overhead_category"], "overhead classes", cmap=classes, vmin=0, vmax=len(NYU40_NAMES) - 1)
 
     _top_down(axes[2][2], v)
     axes[2][3].axis("off")
@@ -133,7 +136,6 @@ def comparison_panel(pred: "SceneStore", truth: "SceneStore", index: int) -> "ma
     layers 1 and 3, and the overhead heights; white = no surface (a masked or removed
     prediction). The caller checks that the two views are the same view."""
     try:
-        import matplotlib
         from matplotlib.colors import ListedColormap
         from matplotlib.figure import Figure
     except ImportError as e:
@@ -162,13 +164,9 @@ def comparison_panel(pred: "SceneStore", truth: "SceneStore", index: int) -> "ma
             if data is None:
                 ax.set_title("RGB (not rendered)", fontsize=9)
                 continue
-            if "cmap" in kw:
-                cmap = kw.pop("cmap")
-                kw["cmap"] = (matplotlib.colormaps[cmap] if isinstance(cmap, str) else cmap).with_extremes(bad="white")
-            ax.imshow(data, interpolation="nearest", **kw)
-            ax.set_title(title if r == 0 else "", fontsize=9)
+            _image(ax, data, title if r == 0 else "", fontsize=9, **kw)
         axes[r][0].set_ylabel(label, fontsize=11)
-    fig.suptitle(f"view {index % len(truth)}: house {rows[0][1]['house_id']}, camera {int(rows[0][1]['camera_id'])}"
+    fig.suptitle(f"view {index}: house {rows[0][1]['house_id']}, camera {int(rows[0][1]['camera_id'])}"
                  "; top: the truth, bottom: the prediction", fontsize=10)
     return fig
 

@@ -63,12 +63,12 @@ def _read(store, name: str, rows: np.ndarray) -> np.ndarray:
     return block[rows - rows[0]]
 
 
-def seg_targets(category: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """The segmentation classes of layers 1 and 3 of views: ``category`` (n, 3, H, W) uint8
-    NYU40 ids, ``depth`` (n, 5, H, W) → (n, 2, H, W) int64 classes, -1 where the ray hits
-    nothing (neither the layer nor the envelope D5), as training's targets are."""
+def seg_targets(category: np.ndarray, depth: np.ndarray, empty: int = -1) -> np.ndarray:
+    """The segmentation classes of layers 1 and 3 of views, the frontal nets' targets:
+    ``category`` (n, 3, H, W) uint8 NYU40 ids, ``depth`` (n, 5, H, W) → (n, 2, H, W) int64
+    classes, ``empty`` where the ray hits nothing (neither the layer nor the envelope D5)."""
     nothing = np.isnan(depth[:, [0, 2]]) & np.isnan(depth[:, 4:5])
-    return np.where(nothing, -1, _TO_SEG[category[:, :2].astype(np.int64)])
+    return np.where(nothing, empty, _TO_SEG[category[:, :2].astype(np.int64)])
 
 
 @dataclass(frozen=True)

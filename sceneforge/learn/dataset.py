@@ -29,6 +29,7 @@ import torch
 
 from .. import conventions
 from ..errors import SceneforgeError
+from ..evaluate.learning import seg_targets
 from .config import SplitConfig  # noqa: F401  (defined without torch, for the CLI and the schema)
 from .split import SPLITS, split_houses  # noqa: F401  (re-exported: the split needs no torch)
 
@@ -178,9 +179,7 @@ class StoreDataset(torch.utils.data.Dataset):
         if "depth" in self.fields:
             out["depth"] = torch.from_numpy(read("depth").astype(np.float32))
         if "seg" in self.fields:
-            depth = read("depth")
-            nothing = np.isnan(depth[[0, 2]]) & np.isnan(depth[4])
-            out["seg"] = torch.from_numpy(segmentation_target(read("category")[:2], nothing))
+            out["seg"] = torch.from_numpy(seg_targets(read("category")[None], read("depth")[None], EMPTY)[0])
         if "overhead_height" in self.fields:
             height = read("overhead_height").astype(np.float32)
             foreground = np.isfinite(height)
