@@ -196,6 +196,16 @@ class Tolerances:
     #: the reference ray tracer: leaf bounding boxes grow by this so that touching rays
     #: are never culled
     leaf_pad: float = 1e-6
+    #: first hits: the triangles a ray crosses at most this much (relative, unitless)
+    #: beyond its nearest float32 engine distance are its candidates, and the one of
+    #: smallest float64 plane distance is its first hit (exact ties: lower instance, then
+    #: lower triangle), whatever order a traversal meets them in; about 4 float32 steps,
+    #: used as a float32 (sceneforge's extension holds the same constant)
+    tie_window: float = 5e-7
+    #: the Open3D engine puts two triangles of an instance in one Embree geometry only
+    #: when their bounding boxes, grown by this, are apart along some axis: they can then
+    #: never be crossed at the same float32 distance, which Open3D's list would report once
+    tie_box_pad: float = 1e-4
 
 
 tol = Tolerances()

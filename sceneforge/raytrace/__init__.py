@@ -46,12 +46,15 @@ from ..errors import HouseError
 if TYPE_CHECKING:
     from ..houses.model import House
 
-__all__ = ["BACKENDS", "Backend", "CollectingBackend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays", "default_backend"]
+__all__ = ["BACKENDS", "Backend", "CollectingBackend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays", "default_backend", "nearest_candidates"]
 
 #: Engine names accepted by :class:`HouseTracer`.
 BACKENDS = ("embree", "open3d", "reference")
 #: environment variable giving :class:`HouseTracer`'s default engine thread count
 THREADS_ENV = "SCENEFORGE_TRACE_THREADS"
+#: environment variable naming :func:`default_backend`'s engine (one of :data:`BACKENDS`),
+#: e.g. ``open3d`` to render with the fallback where the extension is built
+ENGINE_ENV = "SCENEFORGE_TRACE_ENGINE"
 
 
 @dataclass
@@ -443,10 +446,50 @@ def _order_by_ray_and_distance(ray: np.ndarray, t: np.ndarray, face: np.ndarray)
     return order
 
 
+def nearest_candidates(
+    triangles: HouseTriangles, rays: Rays, ray: np.ndarray, face: np.ndarray, t32: np.ndarray
+) -> np.ndarray:
+    """(n,) int64 each ray's first-hit face (-1: none) from every one of its crossings.
+
+    ray, face : (k,) int64  the crossings (faces index ``triangles.faces``), any order
+    t32       : (k,) float32  the engine's distance of each
+
+    The candidates of a ray are its crossings at most ``tol.tie_window`` (relative, in
+    float32) beyond its nearest one; the first hit is the candidate of smallest float64
+    plane distance (non-finite: last), exact ties by the lower face index, i.e. the lower
+    instance, then the lower triangle. Two triangles an edge-on ray passes between, or
+    two coincident ones, tie in float32; which one a traversal meets first differs between
+    Embree builds and CPUs, this choice does not (the extension's ``nearest_face`` makes
+    it the same way).
+    """
+    out = np.full(len(rays), -1, dtype=np.int64)
+    if not len(ray):
+        return out
+    t32 = np.asarray(t32, dtype=np.float32)
+    nearest = np.full(len(rays), np.inf, dtype=np.float32)
+    np.minimum.at(nearest, ray, t32)
+    limit = nearest * (np.float32(1.0) + np.float32(tol.tie_window))  # float32, as the extension
+    candidate = t32 <= limit[ray]
+    ray, face = ray[candidate], face[candidate]
+    key, _ = _plane_distance(triangles, face, ray, rays)
+    key[~np.isfinite(key)] = np.inf
+    order = np.lexsort((face, key, ray))
+    ray, face = ray[order], face[order]
+    first = np.r_[True, ray[1:] != ray[:-1]]
+    out[ray[first]] = face[first]
+    return out
+
+
 def default_backend() -> str:
-    """``"embree"`` where sceneforge's Embree extension is built, else ``"open3d"``."""
+    """The engine the ``SCENEFORGE_TRACE_ENGINE`` environment variable names, else
+    ``"embree"`` where sceneforge's Embree extension is built, else ``"open3d"``."""
     from .embree_backend import AVAILABLE
 
+    named = os.environ.get(ENGINE_ENV, "")
+    if named:
+        if named not in BACKENDS:
+            raise ValueError(f"{ENGINE_ENV}={named!r} names no ray-tracing engine; choose one of {', '.join(BACKENDS)}")
+        return named
     return "embree" if AVAILABLE else "open3d"
 
 

@@ -9,15 +9,19 @@
 //   * a filter callback that rejects every hit (so the traversal goes on) after recording
 //     it with its float64 plane distance `(offset - n.o) / (n.d)`, each dot product summed
 //     x, y, z, as `_plane_distance` computes it (build with -ffp-contract=off: no FMA);
-//   * Open3D's own list rule too: a hit of the same geometry as the last one reported on
-//     the ray, at the same float32 distance or of the same triangle, is left out;
+//   * every crossing Embree reports is kept (the Open3D engine lays its geometries out so
+//     that its list rule drops none; see open3d_backend.py): what is kept of a ray's hits
+//     then depends only on the set of triangles it crosses, never on the order in which a
+//     traversal meets them (which differs between Embree builds and CPUs);
 //   * the traversal stops at `cutoff + margin` (the ray's closing hit, found by a
 //     first-hit pass, plus slack), and hits beyond `cutoff` are dropped;
 //   * per ray, hits are sorted by the same float key `_order_by_ray_and_distance` uses,
 //     then by face, and same-instance repeats are dropped as `_same_instance_repeats` does;
 //   * the CSR arrays of `Hits` are written directly;
-//   * first hits (closing passes, D5) in ray packets, naming the faces rtcIntersect1 names
-//     (see nearest_faces_packed).
+//   * first hits (closing passes, D5): of the triangles crossed within float32 rounding of
+//     the nearest distance, the one of smallest float64 plane distance, exact ties by face
+//     index (lower instance, then lower triangle; see nearest_face), in ray packets that
+//     name the faces ray-by-ray tracing names (see nearest_faces_packed).
 //
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
@@ -85,9 +89,6 @@ struct Collector {
     double limit32;          // engine distances farther than this are not kept
     bool raw;                // keep every crossing (no plane-distance test)
     std::vector<HitRecord>* out;
-    // the last hit reported on this ray in this scene (Open3D's rule, see collect_filter)
-    unsigned int previous_geom, previous_prim;
-    float previous_t;
 };
 
 // The distance along ray (o, d) to the plane q (unit normal x, y, z and offset) and the
@@ -107,12 +108,9 @@ void collect_filter(const RTCFilterFunctionNArguments* args) {
         const float t32 = RTCRayN_tfar(args->ray, args->N, i);
         const unsigned int geom = RTCHitN_geomID(args->hit, args->N, i);
         const unsigned int prim = RTCHitN_primID(args->hit, args->N, i);
-        // Open3D's list_intersections leaves out a hit of the same geometry as the last
-        // one it reported on the ray, at the same float32 distance or of the same
-        // triangle (two coplanar triangles of one instance: it names the first met).
-        // The same rule here keeps the hits bit-identical to that engine's.
-        if (geom == c->previous_geom && (prim == c->previous_prim || t32 == c->previous_t)) continue;
-        c->previous_geom = geom, c->previous_prim = prim, c->previous_t = t32;
+        // every crossing is kept, even a triangle met twice (a BVH with spatial splits may
+        // report it from two leaves): the per-ray pass merges it with itself, and the hits
+        // do not depend on which of two tied triangles a traversal meets first
         if (static_cast<double>(t32) > c->limit32) continue;
         const int64_t face = c->face_base[geom] + prim;
         if (c->raw) {
@@ -273,7 +271,6 @@ void set_ray(RTCRayHit& rh, const EngineObject* e, const double* o, const double
 // One rtcIntersect1 of `scene` through the collector's filter.
 void intersect_collecting(const Scene* s, Collector& c, RTCRayHit& rh) {
     c.face_base = s->face_base.data();
-    c.previous_geom = RTC_INVALID_GEOMETRY_ID, c.previous_prim = RTC_INVALID_GEOMETRY_ID, c.previous_t = 0.0f;
 #if RTC_VERSION_MAJOR >= 4
     RTCIntersectArguments args;
     rtcInitIntersectArguments(&args);
@@ -487,8 +484,6 @@ PyObject* engine_add_scene(EngineObject* self, PyObject* args) {
     return PyLong_FromSsize_t(static_cast<Py_ssize_t>(self->scenes->size()) - 1);
 }
 
-// The nearest face (house index) of one ray over the scenes, -1 where none; at equal
-// engine distance the earlier scene's hit stays (as the Open3D engine's intersect_first).
 // The nearest hit of one ray in one scene (rtcIntersect1): its float32 distance and face.
 void nearest_in_scene(const EngineObject* e, const Scene* s, const double* o, const double* d, float& t,
                       int64_t& face) {
@@ -500,16 +495,87 @@ void nearest_in_scene(const EngineObject* e, const Scene* s, const double* o, co
     face = hit ? s->face_base[rh.hit.geomID] + rh.hit.primID : -1;
 }
 
-int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d) {
-    float nearest = std::numeric_limits<float>::infinity();
-    int64_t face = -1;
-    for (const Scene* s : scenes) {
-        float t;
-        int64_t f;
-        nearest_in_scene(e, s, o, d, t, f);
-        if (f >= 0 && t < nearest) nearest = t, face = f;
+// The candidates for a ray's nearest hit: every triangle it crosses at a float32 distance
+// at most kCandidateWindow (relative) beyond the nearest one, t_nearest * (1 + window)
+// rounded to float32 (sceneforge.raytrace.CANDIDATE_WINDOW, the same float32 product).
+// Two triangles tie there when they meet at an edge the ray passes through, or overlap;
+// which of them a traversal names first depends on the Embree build and the CPU.
+constexpr float kCandidateWindow = 5e-7f;  // about 4 float32 steps
+
+struct CandidateFinder {
+    SFContextBase base;  // first: Embree hands the callback a pointer to it
+    const int64_t* face_base;
+    float limit;  // candidates lie at or before this float32 distance
+    const double* plane;
+    const double *o, *d;
+    double best_key;  // the best candidate so far: plane distance (inf where not finite), face
+    int64_t best_face;
+};
+
+// Keeps the candidate of smallest float64 plane distance, exact ties (and non-finite
+// distances: a ray in the triangle's plane) by lower face index, and rejects every hit.
+void candidate_filter(const RTCFilterFunctionNArguments* args) {
+    CandidateFinder* c = reinterpret_cast<CandidateFinder*>(args->context);
+    for (unsigned int i = 0; i < args->N; ++i) {
+        if (args->valid[i] != -1) continue;
+        args->valid[i] = 0;
+        if (!(RTCRayN_tfar(args->ray, args->N, i) <= c->limit)) continue;
+        const int64_t face = c->face_base[RTCHitN_geomID(args->hit, args->N, i)] + RTCHitN_primID(args->hit, args->N, i);
+        double cos;
+        double key = plane_distance(c->plane + 4 * face, c->o, c->d, cos);
+        if (!std::isfinite(key)) key = std::numeric_limits<double>::infinity();
+        if (c->best_face < 0 || key < c->best_key || (key == c->best_key && face < c->best_face))
+            c->best_key = key, c->best_face = face;
     }
-    return face;
+}
+
+// The nearest face (house index) of one ray over the scenes, -1 where none: of the
+// triangles crossed within kCandidateWindow of the nearest float32 distance over all the
+// scenes, the one of smallest float64 plane distance, exact ties by the lower face index
+// (the lower instance, then the lower triangle of it). The choice depends only on the
+// set of triangles the ray crosses, not on the order a traversal meets them in: the same
+// face from every Embree build and CPU and from the Open3D engine (its intersect_first).
+int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d) {
+    constexpr float inf = std::numeric_limits<float>::infinity();
+    float own[16];
+    std::vector<float> many;
+    float* t = own;
+    if (scenes.size() > 16) many.resize(scenes.size()), t = many.data();
+    float nearest = inf;
+    int64_t nearest_face = -1;
+    for (size_t k = 0; k < scenes.size(); ++k) {
+        int64_t f;
+        nearest_in_scene(e, scenes[k], o, d, t[k], f);
+        if (f >= 0 && t[k] < nearest) nearest = t[k], nearest_face = f;
+    }
+    if (nearest_face < 0) return -1;
+    CandidateFinder c;
+    c.limit = nearest * (1.0f + kCandidateWindow);
+    c.plane = e->planes->data();
+    c.o = o, c.d = d;
+    c.best_key = std::numeric_limits<double>::infinity(), c.best_face = -1;
+    for (size_t k = 0; k < scenes.size(); ++k) {
+        if (!(t[k] <= c.limit)) continue;  // nothing of this scene in the window
+        c.face_base = scenes[k]->face_base.data();
+        RTCRayHit rh;
+        set_ray(rh, e, o, d, std::nextafter(c.limit, inf));
+#if RTC_VERSION_MAJOR >= 4
+        rtcInitRayQueryContext(&c.base);
+        RTCIntersectArguments args;
+        rtcInitIntersectArguments(&args);
+        args.context = &c.base;
+        args.filter = candidate_filter;
+        args.flags = static_cast<RTCRayQueryFlags>(args.flags | RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER);
+        rtcIntersect1(scenes[k]->scene, &rh, &args);
+#else
+        rtcInitIntersectContext(&c.base);
+        c.base.filter = candidate_filter;
+        rtcIntersect1(scenes[k]->scene, &c.base, &rh);
+#endif
+    }
+    // the window query meets the nearest triangle again (the same ray, the same
+    // arithmetic); should it not, that triangle stays
+    return c.best_face >= 0 ? c.best_face : nearest_face;
 }
 
 // Packets of K rays (rtcIntersectK) for the first-hit passes: a view's rays are coherent
@@ -522,8 +588,9 @@ int64_t nearest_face(const EngineObject* e, const std::vector<const Scene*>& sce
 // two modes' distances of one triangle can differ in the last bits), a hit on or next to
 // a triangle's edge, or no hit (an edge-on ray can hit in one mode and miss in the other). Those rays -- found by the hit's distance to its triangle's edges
 // (near_edge) and a second packet query over a window around the nearest distance
-// (tie_filter) -- are traced again one by one, so every ray names the face rtcIntersect1
-// (ray by ray) names; the tests hold every width equal to it.
+// (tie_filter, a window twice kCandidateWindow) -- and the rays whose nearest hits in two
+// scenes lie that close are decided again ray by ray (nearest_face), so every ray names
+// the face ray-by-ray tracing names; the tests hold every width equal to it.
 template <int K>
 struct Packet;
 #if RTC_VERSION_MAJOR >= 4
@@ -590,7 +657,7 @@ void set_lane(RayHit& rh, int j, const EngineObject* e, const double* o, const d
 // the packet named within kTieWindow of the nearest distance (a tie, or as good as one: the
 // two modes' float32 distances of one triangle can differ in the last bits), and rejects
 // every hit (the query covers only that window, so it visits few nodes).
-constexpr float kTieWindow = 1e-6f;  // relative; about 8 float32 steps
+constexpr float kTieWindow = 2 * kCandidateWindow;  // relative; about 8 float32 steps
 struct TieFinder {
     SFContextBase base;  // first: Embree hands the callback a pointer to it
     unsigned int geom[16], prim[16];  // the face each lane's packet named
@@ -629,7 +696,8 @@ void nearest_faces_packed(const EngineObject* e, const std::vector<const Scene*>
         const int lanes = static_cast<int>(std::min<int64_t>(K, hi - r0));
         alignas(64) int valid[K];
         float nearest[K];
-        for (int j = 0; j < K; ++j) valid[j] = j < lanes ? -1 : 0, nearest[j] = inf;
+        bool redo[K];  // decided ray by ray (nearest_face)
+        for (int j = 0; j < K; ++j) valid[j] = j < lanes ? -1 : 0, nearest[j] = inf, redo[j] = false;
         for (int j = 0; j < lanes; ++j) face[r0 + j] = -1;
         auto ray = [&](int j) { return r0 + (j < lanes ? j : 0); };  // idle lanes repeat the first (not traced)
         for (const Scene* s : scenes) {
@@ -642,7 +710,7 @@ void nearest_faces_packed(const EngineObject* e, const std::vector<const Scene*>
             bool any = false;
             typename Packet<K>::RayHit probe;
             for (int j = 0; j < K; ++j) {
-                const bool hit = valid[j] == -1 && rh.hit.geomID[j] != RTC_INVALID_GEOMETRY_ID;
+                const bool hit = valid[j] == -1 && !redo[j] && rh.hit.geomID[j] != RTC_INVALID_GEOMETRY_ID;
                 again[j] = hit ? -1 : 0;
                 any |= hit;
                 ties.tie[j] = false;
@@ -658,15 +726,26 @@ void nearest_faces_packed(const EngineObject* e, const std::vector<const Scene*>
             }
             if (any) Packet<K>::intersect(again, s->scene, &probe, &ties.base, tie_filter);
             for (int j = 0; j < lanes; ++j) {
-                float t = inf;
-                int64_t f = -1;
-                const bool hit = rh.hit.geomID[j] != RTC_INVALID_GEOMETRY_ID;
-                if (hit) t = rh.ray.tfar[j], f = s->face_base[rh.hit.geomID[j]] + rh.hit.primID[j];
-                if (!hit || ties.tie[j] || near_edge(e, f, t, rh.hit.u[j], rh.hit.v[j]))
+                if (redo[j]) continue;
+                if (rh.hit.geomID[j] == RTC_INVALID_GEOMETRY_ID) {
+                    // an edge-on ray can hit ray by ray where the packet missed
+                    float t;
+                    int64_t f;
                     nearest_in_scene(e, s, rays.origin(r0 + j), rays.direction(r0 + j), t, f);
-                if (f >= 0 && t < nearest[j]) nearest[j] = t, face[r0 + j] = f;
+                    redo[j] = f >= 0;
+                    continue;
+                }
+                const float t = rh.ray.tfar[j];
+                const int64_t f = s->face_base[rh.hit.geomID[j]] + rh.hit.primID[j];
+                // a tie within the scene, a hit next to an edge, or within the window of
+                // another scene's nearest hit: the candidates are found ray by ray
+                redo[j] = ties.tie[j] || near_edge(e, f, t, rh.hit.u[j], rh.hit.v[j]) ||
+                          (nearest[j] < inf && std::min(t, nearest[j]) * (1.0f + kTieWindow) >= std::max(t, nearest[j]));
+                if (!redo[j] && t < nearest[j]) nearest[j] = t, face[r0 + j] = f;
             }
         }
+        for (int j = 0; j < lanes; ++j)
+            if (redo[j]) face[r0 + j] = nearest_face(e, scenes, rays.origin(r0 + j), rays.direction(r0 + j));
     }
 }
 
@@ -683,7 +762,7 @@ void nearest_faces(const EngineObject* e, const std::vector<const Scene*>& scene
 }
 
 // first(scene_ids, n, origins, directions) -> bytearray (n,) i8: the nearest face of each
-// ray over the scenes (-1: none); at equal engine distance the earlier scene's hit stays.
+// ray over the scenes (-1: none) (nearest_face: ties canonical).
 PyObject* engine_first(EngineObject* self, PyObject* args) {
     PyObject *ids, *origins, *directions;
     Py_ssize_t n;

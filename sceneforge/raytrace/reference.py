@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import tol
-from . import HouseTriangles, Rays
+from . import HouseTriangles, Rays, nearest_candidates
 
 
 def moller_trumbore(origins, directions, v0, v1, v2) -> tuple[np.ndarray, np.ndarray]:
@@ -40,6 +40,7 @@ class ReferenceBackend:
     name = "reference"
 
     def __init__(self, triangles: HouseTriangles, leaf_size: int = 64, batch: int = 1 << 20):
+        self._triangles = triangles
         self._corners = triangles.vertices[triangles.faces]
         self._face_instance = triangles.instance
         self._batch = batch
@@ -114,12 +115,8 @@ class ReferenceBackend:
 
     def intersect_first(self, rays: Rays, instances: np.ndarray | None = None) -> np.ndarray:
         ray, face, t = self._crossings(rays.origins, rays.directions, instances)
-        order = np.lexsort((face, t, ray))
-        ray, face = ray[order], face[order]
-        first = np.r_[True, ray[1:] != ray[:-1]] if len(ray) else np.zeros(0, bool)
-        out = np.full(len(rays), -1, dtype=np.int64)
-        out[ray[first]] = face[first]
-        return out
+        # the fast engines' rule, with its float64 distances rounded as theirs are
+        return nearest_candidates(self._triangles, rays, ray, face, t.astype(np.float32))
 
     def closest_distance(self, points: np.ndarray) -> np.ndarray:
         from trimesh.triangles import closest_point
