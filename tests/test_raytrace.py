@@ -429,6 +429,23 @@ def test_without_the_extension_open3d_is_the_default(monkeypatch):
         HouseTracer(house, backend="embree")
 
 
+def test_the_environment_names_the_default_engine(monkeypatch):
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.raytrace import ENGINE_ENV
+
+    house = random_house(0)
+    monkeypatch.setenv(ENGINE_ENV, "open3d")
+    assert default_backend() == "open3d" and HouseTracer(house).backend.name == "open3d"
+    monkeypatch.setenv(ENGINE_ENV, "embree9")
+    with pytest.raises(SceneforgeError, match=f"{ENGINE_ENV}='embree9'.*embree, open3d, reference"):
+        HouseTracer(house)
+
+
+@NO_EXTENSION
+def test_the_extension_breaks_ties_in_the_same_float32_window():
+    assert embree._embree.CANDIDATE_WINDOW == float(np.float32(tol.tie_window))
+
+
 def test_the_extension_is_the_default_where_it_is_built():
     assert default_backend() == ("embree" if embree.AVAILABLE else "open3d")
 
@@ -473,3 +490,85 @@ def test_camera_directions_skip_the_full_scan_and_nothing_else_does():
         Rays.check(origins, directions)
     with pytest.raises(ValueError, match="read-only"):
         checked_directions(np.zeros((2, 3)))
+
+
+# ------------------------------------------------------------------ exact ties
+
+
+def tied_house(seed: int):
+    """Coincident and overlapping triangles at exactly representable coordinates, faces and
+    instance order shuffled by ``seed``: two coplanar sheets of different labels at z = 1
+    (one split along each diagonal, the first also doubled with the opposite winding, as a
+    two-sided sheet), and at z = 3 a wall with a picture lying in its plane. Returns the
+    house and the instance names in house order."""
+    rng = np.random.default_rng(seed)
+    sq = lambda lo, hi, z: np.array([[lo, lo, z], [hi, lo, z], [hi, hi, z], [lo, hi, z]], dtype=float)  # noqa: E731
+    parts = {
+        "shelf": (3, sq(-0.5, 0.5, 1.0), [[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]]),
+        "board": (5, sq(-0.5, 0.5, 1.0), [[0, 1, 3], [1, 2, 3]]),
+        "wall": (1, sq(-2.0, 2.0, 3.0), [[0, 1, 2], [0, 2, 3]]),
+        "picture": (11, sq(-1.0, 1.0, 3.0), [[0, 1, 2], [0, 2, 3]]),
+    }
+    names = list(rng.permutation(list(parts)))
+    h = House(id=f"ties{seed}", instances=[])
+    for name in names:
+        category, vertices, faces = parts[name]
+        make_instance(h, name=name, category=category, label=name, room_id=None,
+                      vertices=vertices, faces=np.array(faces)[rng.permutation(len(faces))])
+    return h, names
+
+
+def _containing(house, x: float, y: float, z: float) -> list[tuple[int, int, bool]]:
+    """(instance, triangle, front facing for a ray along +z) of every triangle in the plane
+    z that contains (x, y), edges included (exact: the coordinates are dyadic)."""
+    out = []
+    for i, inst in enumerate(house.instances):
+        for k, f in enumerate(inst.faces):
+            a, b, c = inst.vertices[f]
+            if a[2] != z:
+                continue
+            cross = [(q[0] - p[0]) * (y - p[1]) - (q[1] - p[1]) * (x - p[0]) for p, q in ((a, b), (b, c), (c, a))]
+            if min(cross) >= 0 or max(cross) <= 0:
+                area = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+                out.append((i, k, area < 0))  # counter-clockwise seen from +z faces +z: a back face
+    return sorted(out)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_exact_ties_go_to_the_lower_instance_then_triangle_whatever_the_face_order(backend, seed):
+    """Rays along +z through a grid that includes the sheets' diagonals, borders and corners
+    (edges shared by two triangles, the same triangle twice with both windings, a picture in
+    its wall's plane): each tie of one distance goes to the lower instance, then its lower
+    triangle, in every engine and whatever order the faces and instances come in; all hits
+    keep one hit per instance and distance, lower instance first. Which of the tied labels
+    wins follows the instance order, as the rule says, not the triangles' order."""
+    house, names = tied_house(seed)
+    tracer = HouseTracer(house, backend)
+    g = np.arange(-1.75, 1.76, 0.25)
+    xy = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    origins = np.c_[xy, np.zeros(len(xy))]
+    directions = np.broadcast_to([0.0, 0.0, 1.0], origins.shape)
+    envelope = tracer.triangles.envelope
+    first, closing = tracer.first_hit(origins, directions), tracer.first_hit(origins, directions, envelope)
+    hits = tracer.all_hits(origins, directions)
+    ties = 0
+    for r, (x, y) in enumerate(xy):
+        on_sheets, on_wall = _containing(house, x, y, 1.0), _containing(house, x, y, 3.0)
+        ties += len({i for i, _, _ in on_sheets}) > 1 or len(on_sheets) > 2
+        want_first = (on_sheets or on_wall)[0]
+        assert (first.instance[r], first.triangle[r], first.front_facing[r]) == want_first, (x, y)
+        assert first.t[r] == (1.0 if on_sheets else 3.0)
+        assert (closing.instance[r], closing.triangle[r]) == on_wall[0][:2], (x, y)
+        # all hits: the first triangle of each instance at each distance, in instance order
+        want = [(z, *min(c for c in on if c[0] == i)) for z, on in ((1.0, on_sheets), (3.0, on_wall))
+                for i in sorted({c[0] for c in on})]
+        row = slice(hits.offsets[r], hits.offsets[r + 1])
+        got = list(zip(hits.t[row], hits.instance[row], hits.triangle[row], hits.front_facing[row]))
+        assert got == want, (x, y)
+    assert ties >= 20  # the grid does meet the ties
+    # the label the frontal layers and D5 would take: the lower of the tied instances
+    inside = np.flatnonzero((np.abs(xy) <= 0.5).all(axis=1))
+    sheet = min(names.index("shelf"), names.index("board"))
+    np.testing.assert_array_equal(first.instance[inside], sheet)
+    np.testing.assert_array_equal(closing.instance[inside], min(names.index("wall"), names.index("picture")))

@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from ..conventions import tol
-from ..errors import HouseError
+from ..errors import HouseError, SceneforgeError
 
 if TYPE_CHECKING:
     from ..houses.model import House
@@ -488,7 +488,7 @@ def default_backend() -> str:
     named = os.environ.get(ENGINE_ENV, "")
     if named:
         if named not in BACKENDS:
-            raise ValueError(f"{ENGINE_ENV}={named!r} names no ray-tracing engine; choose one of {', '.join(BACKENDS)}")
+            raise SceneforgeError(f"{ENGINE_ENV}={named!r} names no ray-tracing engine; choose one of {', '.join(BACKENDS)}")
         return named
     return "embree" if AVAILABLE else "open3d"
 
@@ -568,8 +568,9 @@ class HouseTracer:
         :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster: a first-hit query
         against the envelope replaces tracing through every wall of the house, objects far
         behind the closing hit are dropped before any distance is computed, and the closing
-        hits never enter the per-ray sort. The one exception: where two envelope surfaces are
-        hit first at the same distance (within float32 rounding), the engine picks one of them.
+        hits never enter the per-ray sort. Where two envelope surfaces are hit first at the same
+        distance (within float32 rounding), the closing hit is the one :func:`nearest_candidates`
+        picks; all hits would list both.
 
         origins, directions : (n, 3) float  ray origins and unit directions, world
         objects             : (n_instances,) bool, optional  the object instances to trace

@@ -5,7 +5,8 @@
 // operation for operation, so that both give bit-identical hits:
 //
 //   * one Embree geometry per house instance, robust scenes, float32 vertices and rays
-//     shifted to the house centre (exactly as the Open3D engine feeds Embree);
+//     shifted to the house centre (the float32 triangles and rays the Open3D engine feeds
+//     Embree, which splits instances into more geometries);
 //   * a filter callback that rejects every hit (so the traversal goes on) after recording
 //     it with its float64 plane distance `(offset - n.o) / (n.d)`, each dot product summed
 //     x, y, z, as `_plane_distance` computes it (build with -ffp-contract=off: no FMA);
@@ -430,7 +431,7 @@ int engine_init(EngineObject* self, PyObject* args, PyObject*) {
 PyObject* engine_packet(EngineObject* self, void*) { return PyLong_FromLong(self->packet); }
 
 // add_scene(members (g,) i8, first_vertex (n+1,) i8) -> scene id: one geometry per member
-// instance, in the given order, robust, as the Open3D engine builds its scenes.
+// instance, in the given order, robust (the Open3D engine's triangles, in fewer geometries).
 PyObject* engine_add_scene(EngineObject* self, PyObject* args) {
     PyObject *members_obj, *first_vertex_obj;
     if (!PyArg_ParseTuple(args, "OO", &members_obj, &first_vertex_obj)) return nullptr;
@@ -1951,6 +1952,11 @@ PyMODINIT_FUNC PyInit__embree(void) {
     Py_INCREF(&EngineType);
     if (PyModule_AddObject(m, "Engine", reinterpret_cast<PyObject*>(&EngineType)) < 0) {
         Py_DECREF(&EngineType);
+        Py_DECREF(m);
+        return nullptr;
+    }
+    // the float32 tie window of first hits, which sceneforge.conventions.tol.tie_window must round to
+    if (PyModule_AddObject(m, "CANDIDATE_WINDOW", PyFloat_FromDouble(kCandidateWindow)) < 0) {
         Py_DECREF(m);
         return nullptr;
     }

@@ -6,9 +6,11 @@ same-instance hits to numpy. The extension traverses each ray once, stops at the
 and does the rest in its filter callback and per-ray pass, multi-threaded, writing the
 :class:`~sceneforge.raytrace.Hits` arrays directly (:meth:`EmbreeBackend.collect`).
 
-Its hits are bit-identical to the Open3D engine's: it builds the same Embree scenes (one
-geometry per instance, robust, envelope and objects apart, coordinates shifted to the
-house centre before the float32 conversion) and repeats the shared hit collection of
+Its hits are bit-identical to the Open3D engine's: it builds the same float32 triangles
+(robust scenes, envelope and objects apart, coordinates shifted to the house centre before
+the float32 conversion; one geometry per instance, where Open3D needs more, see
+:mod:`.open3d_backend`), keeps every crossing, breaks first-hit ties by the rule of
+:func:`~sceneforge.raytrace.nearest_candidates` and repeats the shared hit collection of
 :mod:`sceneforge.raytrace` operation for operation (see the comment atop ``_embree.cpp``).
 
 The extension is built at install time where a C++ compiler and Embree's headers are
