@@ -196,6 +196,12 @@ class Tolerances:
     #: the reference ray tracer: leaf bounding boxes grow by this so that touching rays
     #: are never culled
     leaf_pad: float = 1e-6
+    #: path tracing needs square pixels (Mitsuba's camera has one focal length): fx and fy
+    #: may differ by this fraction of fx, and the skew by this fraction of fx, unitless.
+    #: PBRS camera files give half-FOVs to 6 decimals (0.433896), up to 5e-7 rad off, which
+    #: moves f by up to 1.3e-6 of itself at their FOVs (their fx, fy differ by 3.3e-7); using
+    #: fx for both then moves a 240-row image's edge rows by at most 1e-5 · 120 = 0.0012 px
+    square_pixels: float = 1e-5
 
 
 tol = Tolerances()

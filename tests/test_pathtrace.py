@@ -90,6 +90,51 @@ def test_non_square_pixels_are_a_one_line_error(mi):
     assert "\n" not in str(e.value)
 
 
+#: a camera line as PBRS's room_camera.txt files give it: half-FOVs to 6 decimals, so fx and fy
+#: at 320×240 differ by 3.3e-7 of fx
+PBRS_LINE = "-0.62 1.5 -1.13  0.48 -0.196116 0.855  0 0.980581 0.196116  0.5534 0.433896 0.83"
+
+
+def test_pbrs_camera_at_320x240_path_traces(mi):
+    """A PBRS camera path-traces at 320×240: its fx and fy are not equal (the file's rounding),
+    the sensor shoots the layers' rays through the pixel centres to within the rounding, and
+    the frame shows the box on exactly D1's pixels away from its outline."""
+    from sceneforge.cameras import camera_from_pbrs
+
+    house, box, _ = red_box_room()
+    camera = camera_from_pbrs(PBRS_LINE, width=320, height=240)
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    assert fx != fy and abs(fx - fy) / fx == pytest.approx(3.3e-7, rel=0.05)
+    spec = pathtrace.mitsuba_sensor(camera)
+    sensor = mi.load_dict({**spec, "to_world": mi.ScalarTransform4f(spec["to_world"].tolist()),
+                           "film": {"type": "hdrfilm", "width": 320, "height": 240}})
+    _, directions, _ = camera.rays()
+    for i, j in [(0, 0), (0, 319), (239, 0), (239, 319), (120, 160)]:
+        position = mi.Point2f((j + 0.5) / 320, (i + 0.5) / 240)
+        ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
+        # 1e-5 rad is 0.003 px at 259 px focal length
+        np.testing.assert_allclose(np.ravel(ray.d), directions[i * 320 + j], atol=1e-5)
+    d1 = frontal_layers(house, camera).instance[0] == box.id
+    with open_renderer("pathtraced", 320, 240, samples=8) as r:
+        rgb = r.render(house, camera).astype(int)
+    red = (rgb[..., 0] > 0) & (rgb[..., 1] == 0) & (rgb[..., 2] == 0)
+    edge = ndimage.binary_dilation(d1) & ~ndimage.binary_erosion(d1)
+    assert d1.sum() > 1000
+    assert (red == d1)[~edge].all()
+
+
+def test_square_pixel_tolerance_is_the_files_rounding_not_more(mi):
+    """fy off by 1e-4 of fx (10× what the tolerance allows) is still refused."""
+    from sceneforge.cameras import camera_from_pbrs
+
+    house, _, _ = red_box_room()
+    camera = camera_from_pbrs(PBRS_LINE, width=320, height=240)
+    K = camera.K.copy()
+    K[1, 1] = K[0, 0] * (1 + 1e-4)
+    with pytest.raises(SceneforgeError, match="square pixels and no skew"):
+        pathtrace.mitsuba_sensor(Camera(K, camera.cam_to_world, 320, 240))
+
+
 def test_unknown_mode_is_refused():
     with pytest.raises(ValueError, match="unknown RGB mode 'photo'; expected one of raster, pathtraced"):
         open_renderer("photo", 8, 8)

@@ -9,8 +9,9 @@ Mitsuba's camera looks along its +z with +y up and +x to the *left* of the image
 pose is ``cam_to_world · diag(-1, -1, 1)``; the horizontal field of view is
 ``2 atan(W / 2 fx)`` and the principal point offset ``((W/2 - cx) / W, (H/2 - cy) / H)``
 (Mitsuba moves the image, not the principal point: the signs are OpenCV's negated).
-Mitsuba's sensor has square pixels and no skew: a camera with ``fx != fy`` or a skew is
-refused with a one-line error. Each pixel integrates its own square (a box filter of
+Mitsuba's sensor has square pixels and no skew: a camera whose fx and fy differ, or with
+a skew, by more than ``tol.square_pixels`` (1e-5 of fx: what a PBRS file's 6-decimal
+half-FOVs leave) is refused with a one-line error; within it, fx sets the field of view. Each pixel integrates its own square (a box filter of
 radius ½ pixel), so the image is antialiased: a silhouette pixel blends its two sides,
 while the pixels on either side of it show what the layers' centre ray sees.
 
@@ -48,6 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..colour import srgb_to_linear
+from ..conventions import tol
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import house_lights
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
@@ -66,8 +68,6 @@ MIN_LLVM = 16
 MAX_DEPTH = 6
 #: samples per pixel when none is given
 DEFAULT_SAMPLES = 64
-#: fx and fy may differ by this fraction, and the skew by this many pixels
-SQUARE_PIXEL_TOLERANCE = 1e-9
 
 
 def newest_llvm() -> tuple[int, str] | None:
@@ -126,7 +126,7 @@ def mitsuba_sensor(camera: "Camera") -> dict:
     :class:`SceneforgeError` for non-square pixels or a skew."""
     K, W, H = camera.K, camera.width, camera.height
     fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
-    if abs(fx - fy) > SQUARE_PIXEL_TOLERANCE * fx or abs(skew) > SQUARE_PIXEL_TOLERANCE:
+    if abs(fx - fy) > tol.square_pixels * fx or abs(skew) > tol.square_pixels * fx:
         raise SceneforgeError(f"path tracing needs square pixels and no skew (Mitsuba's camera has neither); "
                               f"K has fx {fx:g}, fy {fy:g}, skew {skew:g}: use --rgb raster")
     pose = camera.cam_to_world @ np.diag([-1.0, -1.0, 1.0, 1.0])
