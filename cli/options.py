@@ -233,6 +233,7 @@ HOUSE_OPTIONS = (
     ConfigOption("--up-axis", "houses.up_axis", type=click.Choice(["y", "z"])),
     ConfigOption("--name-map", "houses.name_map", type=click.Path(exists=True, dir_okay=False)),
     ConfigOption("--future-dir", "houses.future_dir", type=click.Path(exists=True, file_okay=False)),
+    ConfigOption("--suncg-textures", "houses.suncg_textures", type=click.Choice(["replace", "multiply"])),
 )
 
 

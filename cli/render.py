@@ -49,6 +49,7 @@ RENDER_OPTIONS = (
                       "global illumination, seconds per view) or none (no RGB images: the store has no rgb "
                       "array); sets rgb.mode and rgb.enabled"),
     ConfigOption("--rgb-samples", "rgb.samples", type=click.IntRange(min=1)),
+    ConfigOption("--rgb-denoise", "rgb.denoise"),
 )
 
 

@@ -71,6 +71,9 @@ class RGBConfig:
     antialias: bool = False
     #: pathtraced only: samples per pixel (fixed, with a fixed seed: the same view gives the same image)
     samples: int = 64
+    #: pathtraced only: denoise each frame with Intel Open Image Denoise guided by the path
+    #: tracer's albedo and normals (pyoidn; deterministic)
+    denoise: bool = True
     #: lights and background
     lighting: RenderConfig = field(default_factory=RenderConfig)
 

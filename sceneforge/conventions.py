@@ -206,6 +206,12 @@ class Tolerances:
     #: when their bounding boxes, grown by this, are apart along some axis: they can then
     #: never be crossed at the same float32 distance, which Open3D's list would report once
     tie_box_pad: float = 1e-4
+    #: path tracing needs square pixels (Mitsuba's camera has one focal length): fx and fy
+    #: may differ by this fraction of fx, and the skew by this fraction of fx, unitless.
+    #: PBRS camera files give half-FOVs to 6 decimals (0.433896), up to 5e-7 rad off, which
+    #: moves f by up to 1.3e-6 of itself at their FOVs (their fx, fy differ by 3.3e-7); using
+    #: fx for both then moves a 240-row image's edge rows by at most 1e-5 · 120 = 0.0012 px
+    square_pixels: float = 1e-5
 
 
 tol = Tolerances()

@@ -132,9 +132,10 @@ def test_options_typed_override_the_file_and_others_leave_it_alone(tmp_path):
 
 def test_rgb_mode_option_sets_mode_and_enabled():
     assert resolved(DatasetConfig, RENDER_OPTIONS)["rgb"] | {"lighting": None} == {
-        "enabled": True, "mode": "raster", "antialias": False, "samples": 64, "lighting": None}
+        "enabled": True, "mode": "raster", "antialias": False, "samples": 64, "denoise": True, "lighting": None}
     got = resolved(DatasetConfig, RENDER_OPTIONS, "--rgb", "pathtraced", "--rgb-samples", 8)["rgb"]
     assert (got["enabled"], got["mode"], got["samples"]) == (True, "pathtraced", 8)
+    assert resolved(DatasetConfig, RENDER_OPTIONS, "--no-rgb-denoise")["rgb"]["denoise"] is False
     assert resolved(DatasetConfig, RENDER_OPTIONS, "--rgb", "none")["rgb"]["enabled"] is False
 
 

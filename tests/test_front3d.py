@@ -217,6 +217,40 @@ def test_architecture_meshes(tmp_path):
     assert trimesh.Trimesh(floor.vertices, floor.faces).face_normals[:, 1] == pytest.approx([1, 1])
 
 
+def test_meshes_without_a_type_get_one_from_constructid_or_uid(tmp_path):
+    """Real files' customised feature models have an empty ``type``: the rest of their
+    construct types them, else their uid and orientation; ``--strict`` then passes."""
+    wall = {"xyz": [-2, 0, -1.9, -2, 2.6, -1.9, 2, 2.6, -1.9, 2, 0, -1.9], "faces": [0, 1, 2, 0, 2, 3]}
+    high = {"xyz": [-2, 2.7, -2, 2, 2.7, -2, 2, 2.7, 2, -2, 2.7, 2], "faces": [0, 1, 2, 0, 2, 3]}
+    low = {"xyz": [-1, 0.1, -1, -1, 0.1, 1, 1, 0.1, 1, 1, 0.1, -1], "faces": [0, 1, 2, 0, 2, 3]}
+    meshes = [{"uid": "6911/customizedfeaturemodel_1/0", "type": "", **wall},
+              {"uid": "6911/customizedfeaturemodel_2/0", "type": "", **high},
+              {"uid": "6911/customizedfeaturemodel_3/0", "type": "", **low},
+              {"uid": "6911/customizedfeaturemodel_4/0", "type": "", "constructid": "c7", **low},
+              {"uid": "6911/model_5/0", "type": "CustomizedFixedFurniture", "constructid": "c7", **high},
+              {"uid": "6911/other_6/0", "type": "", **low}]
+    children = [{"ref": m["uid"], "instanceid": f"mesh/{k}"} for k, m in enumerate(meshes)]
+    path = _scene(tmp_path, furniture=[], meshes=meshes[:5], models=(), children=children[:5])
+    house = load(path, LoadOptions(strict=True))
+    assert [(i.category_name, i.label, i.envelope) for i in house.instances] == [
+        ("wall", "CustomizedFeatureWall", True), ("ceiling", "CustomizedCeiling", True),
+        ("floor", "CustomizedPlatform", True),
+        ("otherfurniture", "CustomizedFixedFurniture", False)]  # the construct c7: one instance
+    assert len(house.instances[3].faces) == 4
+    assert house.losses == {front3d.UNTYPED: 4}
+    from click.testing import CliRunner
+
+    from sceneforge.cli.main import cli
+
+    result = CliRunner().invoke(cli, ["houses", "inspect", str(path), "--strict"])
+    assert result.exit_code == 0 and f"problem: {front3d.UNTYPED}: 4" in result.output, result.output
+    # a mesh whose file says nothing still has no category
+    (tmp_path / "b").mkdir()
+    path = _scene(tmp_path / "b", furniture=[], meshes=meshes, models=(), children=children)
+    with pytest.raises(HouseError, match="mesh without a category"):
+        load(path, LoadOptions(strict=True))
+
+
 def test_unknown_category_void_or_strict_error(tmp_path):
     odd = {"uid": "u-odd", "jid": "m-chair", "category": "Spaceship", "valid": True}
     path = _scene(tmp_path, furniture=[odd], children=[_child("u-odd", 0)])

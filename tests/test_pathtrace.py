@@ -58,7 +58,8 @@ def test_path_traced_silhouettes_are_on_d1_edges(mi):
     outline crosses (each pixel integrates its square): those lie on D1's edges."""
     house, box, camera = red_box_room()
     d1 = frontal_layers(house, camera).instance[0] == box.id
-    with open_renderer("pathtraced", 160, 120, samples=8) as r:
+    # undenoised: the denoiser's filter mixes neighbouring colours, which this exact test would see
+    with open_renderer("pathtraced", 160, 120, samples=8, denoise=False) as r:
         rgb = r.render(house, camera).astype(int)
     # a pure red diffuse surface reflects no green or blue, whatever light it gets; the grey
     # walls always reflect some (even where the box's light tints them)
@@ -90,6 +91,51 @@ def test_non_square_pixels_are_a_one_line_error(mi):
     assert "\n" not in str(e.value)
 
 
+#: a camera line as PBRS's room_camera.txt files give it: half-FOVs to 6 decimals, so fx and fy
+#: at 320×240 differ by 3.3e-7 of fx
+PBRS_LINE = "-0.62 1.5 -1.13  0.48 -0.196116 0.855  0 0.980581 0.196116  0.5534 0.433896 0.83"
+
+
+def test_pbrs_camera_at_320x240_path_traces(mi):
+    """A PBRS camera path-traces at 320×240: its fx and fy are not equal (the file's rounding),
+    the sensor shoots the layers' rays through the pixel centres to within the rounding, and
+    the frame shows the box on exactly D1's pixels away from its outline."""
+    from sceneforge.cameras import camera_from_pbrs
+
+    house, box, _ = red_box_room()
+    camera = camera_from_pbrs(PBRS_LINE, width=320, height=240)
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    assert fx != fy and abs(fx - fy) / fx == pytest.approx(3.3e-7, rel=0.05)
+    spec = pathtrace.mitsuba_sensor(camera)
+    sensor = mi.load_dict({**spec, "to_world": mi.ScalarTransform4f(spec["to_world"].tolist()),
+                           "film": {"type": "hdrfilm", "width": 320, "height": 240}})
+    _, directions, _ = camera.rays()
+    for i, j in [(0, 0), (0, 319), (239, 0), (239, 319), (120, 160)]:
+        position = mi.Point2f((j + 0.5) / 320, (i + 0.5) / 240)
+        ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
+        # 1e-5 rad is 0.003 px at 259 px focal length
+        np.testing.assert_allclose(np.ravel(ray.d), directions[i * 320 + j], atol=1e-5)
+    d1 = frontal_layers(house, camera).instance[0] == box.id
+    with open_renderer("pathtraced", 320, 240, samples=8, denoise=False) as r:
+        rgb = r.render(house, camera).astype(int)
+    red = (rgb[..., 0] > 0) & (rgb[..., 1] == 0) & (rgb[..., 2] == 0)
+    edge = ndimage.binary_dilation(d1) & ~ndimage.binary_erosion(d1)
+    assert d1.sum() > 1000
+    assert (red == d1)[~edge].all()
+
+
+def test_square_pixel_tolerance_is_the_files_rounding_not_more(mi):
+    """fy off by 1e-4 of fx (10× what the tolerance allows) is still refused."""
+    from sceneforge.cameras import camera_from_pbrs
+
+    house, _, _ = red_box_room()
+    camera = camera_from_pbrs(PBRS_LINE, width=320, height=240)
+    K = camera.K.copy()
+    K[1, 1] = K[0, 0] * (1 + 1e-4)
+    with pytest.raises(SceneforgeError, match="square pixels and no skew"):
+        pathtrace.mitsuba_sensor(Camera(K, camera.cam_to_world, 320, 240))
+
+
 def test_unknown_mode_is_refused():
     with pytest.raises(ValueError, match="unknown RGB mode 'photo'; expected one of raster, pathtraced"):
         open_renderer("photo", 8, 8)
@@ -108,7 +154,7 @@ def test_store_records_the_rgb_mode(mi, tmp_path):
     assert res.exit_code == 0, res.output
     store = open_store(str(out))
     assert store.attrs["config"]["rgb"] | {"lighting": None} == {
-        "enabled": True, "mode": "pathtraced", "antialias": False, "samples": 2, "lighting": None}
+        "enabled": True, "mode": "pathtraced", "antialias": False, "samples": 2, "denoise": True, "lighting": None}
     assert store.config.rgb.mode == "pathtraced"
     assert np.asarray(store.view(0)["rgb"]).std() > 5
 
@@ -163,8 +209,74 @@ def test_window_is_an_area_light_of_the_sky(mi):
     config = RenderConfig(sky_luminance=700.0)
     assert [light.source for light in house_lights(house, config)] == ["window"]
     camera = camera.__class__(camera.K, pose_from_view([0.5, 1.5, 0.0], [-1.0, 0.0, 0.0]), 80, 60)
-    with open_renderer("pathtraced", 80, 60, samples=4, config=config) as r:
+    with open_renderer("pathtraced", 80, 60, samples=4, config=config, denoise=False) as r:
         radiance, seen = r.render_linear(house, camera)
     centre = radiance[28:32, 38:42]
     np.testing.assert_allclose(centre, 700.0, rtol=1e-5)  # every sample sees the emitter
     assert seen.all() and (radiance[55:] > 0).all()  # the floor is lit
+
+
+# ---- denoising (render/denoise.py) ------------------------------------------------------------
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(H, W) float64 Rec. 709 luminance of an (H, W, 3) uint8 sRGB image, 0..255."""
+    return rgb.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def wall_noise(rgb: np.ndarray, region) -> float:
+    """median |Y - 5x5 median(Y)| over ``region`` (the issue's wall-noise measure, 0..255)."""
+    y = luminance(rgb)
+    return float(np.median(np.abs(y - ndimage.median_filter(y, size=5))[region]))
+
+
+def edge_contrast(rgb: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(mean |ΔY| across the edges of ``mask``, mean |ΔY| of the pixel pairs 1 px off them, inside
+    and outside), over horizontal and vertical neighbour pairs."""
+    y = luminance(rgb)
+    on, off = [], []
+    for axis in (0, 1):
+        a, b = np.moveaxis(mask, axis, 0), np.moveaxis(y, axis, 0)
+        across = a[1:-2] != a[2:-1]  # pair (k, k+1) straddles the edge, for k = 1 .. n-3
+        k = np.nonzero(across)
+        on.append(np.abs(b[1:-2] - b[2:-1])[k])
+        # the pairs one pixel off: (k-1, k) and (k+1, k+2), each wholly on one side
+        off.append(np.abs(b[0:-3] - b[1:-2])[k])
+        off.append(np.abs(b[2:-1] - b[3:])[k])
+    return float(np.concatenate(on).mean()), float(np.concatenate(off).mean())
+
+
+def test_denoiser_lowers_noise_on_a_flat_lit_wall(mi):
+    """Facing one wall of the box room at 8 spp: the wall noise falls by at least 3x."""
+    house = box_room("room", size=4.0, height=3.0)
+    camera = Camera(default_intrinsics(80, 60), pose_from_view([0.0, 1.5, -1.0], [0.0, 0.0, 1.0]), 80, 60)
+    wall = np.abs(frontal_layers(house, camera).depth[4] - 3.0) < 1e-6  # the wall 3 m ahead, square on
+    region = ndimage.binary_erosion(wall, iterations=3)
+    assert region.sum() > 1000
+    frames = {}
+    for denoise in (False, True):
+        with open_renderer("pathtraced", 80, 60, samples=8, denoise=denoise) as r:
+            frames[denoise] = r.render(house, camera)
+    noisy, clean = wall_noise(frames[False], region), wall_noise(frames[True], region)
+    assert noisy > 2 and clean < noisy / 3, (noisy, clean)
+
+
+def test_denoiser_keeps_label_edges_where_they_are(mi):
+    """On the red box's D1 outline, the luminance step across the edge stays at least 1.5x
+    the steps one pixel off it: the denoiser does not blur or move the edge."""
+    house, box, camera = red_box_room()
+    d1 = frontal_layers(house, camera).instance[0] == box.id
+    with open_renderer("pathtraced", 160, 120, samples=8) as r:
+        rgb = r.render(house, camera)
+    on, off = edge_contrast(rgb, d1)
+    assert on >= 1.5 * off, (on, off)
+
+
+def test_denoised_frames_are_byte_identical(mi):
+    house, _, camera = red_box_room()
+    with open_renderer("pathtraced", 160, 120, samples=2, seed=3) as a:
+        first = a.render(house, camera)
+        assert np.array_equal(a.render(house, camera), first)
+    with open_renderer("pathtraced", 160, 120, samples=2, seed=3) as b:
+        assert np.array_equal(b.render(house, camera), first)
+

@@ -122,7 +122,9 @@ def _two_level_house(tmp_path) -> House:
 def test_round_trip_levels_ground_materials(tmp_path):
     house = _two_level_house(tmp_path)
     write_house(house, tmp_path / "suncg")
-    back = load(tmp_path / "suncg" / "house" / "duplex")
+    # a sceneforge material is colour × texture, which the writer puts in Kd and map_Kd: the
+    # multiply rule reads it back as it was (the default, replace, would show the texture alone)
+    back = load(tmp_path / "suncg" / "house" / "duplex", LoadOptions(suncg_textures="multiply"))
     _assert_round_trip(house, back)
     ground = next(i for i in back.instances if i.label == "ground")
     assert ground.category == 2 and ground.envelope and ground.room_id is None
@@ -349,6 +351,100 @@ def test_bad_input_raises_house_error(tmp_path, breakage, message):
         (tmp_path / "metadata" / "ModelCategoryMapping.csv").unlink()
     with pytest.raises(HouseError, match=message):
         load(path)
+
+
+# ---- node material overrides and textured materials ------------------------------------
+
+#: a chair model of two quads: the seat (usemtl cover, first used) and the back (usemtl frame);
+#: its .mtl defines frame, cover, unused in that order, which SUNCG's overrides count by
+CHAIR_OBJ = ("mtllib chair2.mtl\n"
+             "v 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\nv 0 1 0\nv 1 1 0\n"
+             "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\n"
+             "usemtl cover\nf 1/1 4/4 3/3 2/2\n"
+             "usemtl frame\nf 1/1 2/2 6/3 5/4\n")
+CHAIR_MTL = ("newmtl frame\nKd 0.6 0.6 0.6\n"
+             "newmtl cover\nKd 1 0.07 0.40\nmap_Kd white.png\n"
+             "newmtl unused\nKd 0 1 0\n")
+#: a SUNCG room wall: a saturated Kd under a pure white wallpaper
+WALL_MTL = "newmtl wall_mat\nKd 1 0.07 0.40\nmap_Kd wallp_0.png\n"
+
+
+def _override_root(tmp_path, materials, textures=("wood_9.jpg",)) -> Path:
+    """The hand house with node 0_1 a chair2 whose ``materials`` are ``materials``, its room's
+    walls textured with white wallpaper, and ``textures`` in ``<root>/texture/``."""
+    doc = _hand_doc()
+    doc["levels"][0]["nodes"][1].update(modelId="chair2", materials=materials)
+    wall = trimesh.creation.box(extents=(0.1, 3, 4))
+    wall.apply_translation((-2.05, 1.5, 0))
+    uv = "".join(f"vt {u} {v}\n" for u, v in (wall.vertices[:, [1, 2]] / 4).tolist())
+    files = {**_hand_files(), "object/chair2/chair2.obj": CHAIR_OBJ, "object/chair2/chair2.mtl": CHAIR_MTL,
+             "room/h1/fr_0rm_0w.obj": "mtllib w.mtl\nusemtl wall_mat\n" + "".join(
+                 f"v {x!r} {y!r} {z!r}\n" for x, y, z in wall.vertices.tolist()) + uv + "".join(
+                 f"f {a}/{a} {b}/{b} {c}/{c}\n" for a, b, c in (np.asarray(wall.faces) + 1).tolist()),
+             "room/h1/w.mtl": WALL_MTL}
+    path = _write_root(tmp_path, doc, files, ROWS + [("chair2", "chair", "chair")])
+    for folder, name, rgb in [("object/chair2", "white.png", 255), ("room/h1", "wallp_0.png", 255)]:
+        Image.fromarray(np.full((2, 2, 3), rgb, np.uint8)).save(tmp_path / folder / name)
+    (tmp_path / "texture").mkdir()
+    for k, name in enumerate(textures):
+        Image.fromarray(np.full((2, 2, 3), (90 + k, 60, 30), np.uint8)).save(tmp_path / "texture" / name)
+    return path
+
+
+def test_node_overrides_replace_the_models_ith_material(tmp_path):
+    """SUNCGtoolbox's ParseSUNCGMaterials: entry i is the model's i-th .mtl material (not the
+    i-th used); ``diffuse`` replaces its colour, ``texture`` its image (texture/<name>.png,
+    else .jpg); entries past the model's materials do nothing."""
+    path = _override_root(tmp_path, [{"name": "frame", "diffuse": "#336699"}, {"name": "cover", "texture": "wood_9"},
+                                     {"name": "unused", "diffuse": "#ffffff"}, {"name": "extra", "texture": "x"}])
+    chair = _by_name(load(path), "Object#0_1")
+    cover, frame = chair.materials  # in order of first use
+    assert frame.base_color == pytest.approx((0x33 / 255, 0x66 / 255, 0x99 / 255, 1.0)) and frame.texture is None
+    assert cover.texture == tmp_path / "texture" / "wood_9.jpg"
+    np.testing.assert_array_equal(chair.face_material, [0, 0, 1, 1])
+    # the same model without overrides keeps its own materials
+    plain = _override_root(tmp_path / "plain", [])
+    cover, frame = _by_name(load(plain), "Object#0_1").materials
+    assert frame.base_color == (0.6, 0.6, 0.6, 1.0) and cover.texture.name == "white.png"
+
+
+def test_override_texture_png_first_and_a_missing_one_is_a_warning(tmp_path):
+    path = _override_root(tmp_path, [{}, {"texture": "wood_9"}], textures=("wood_9.jpg", "wood_9.png"))
+    assert _by_name(load(path), "Object#0_1").materials[0].texture == tmp_path / "texture" / "wood_9.png"
+    path = _override_root(tmp_path / "b", [{}, {"texture": "ghost"}, {"diffuse": "red"}])
+    house = load(path)
+    cover, frame = _by_name(house, "Object#0_1").materials
+    assert cover.texture.name == "white.png"
+    assert f"object node 0_1: texture 'ghost' not found in {tmp_path / 'b' / 'texture'}, the model's own kept" \
+        in house.warnings
+
+
+@pytest.mark.parametrize("rule", ["replace", "multiply"])
+def test_kd_under_a_white_texture(tmp_path, rule):
+    """``replace`` (default, PBRS's Mitsuba): a textured material shows its texture alone, so
+    the wall under white wallpaper is white; ``multiply``: Kd × texture, magenta. Materials
+    without a texture keep their Kd either way; a node's diffuse on a textured one shows only
+    under ``multiply``."""
+    path = _override_root(tmp_path, [{}, {"diffuse": "#00ff00"}])
+    house = load(path, LoadOptions(suncg_textures=rule)) if rule != "replace" else load(path)
+    wall = _by_name(house, "Wall#0_0")
+    cover, frame = _by_name(house, "Object#0_1").materials
+    assert frame.base_color == (0.6, 0.6, 0.6, 1.0)
+    if rule == "replace":
+        assert wall.material.base_color == cover.base_color == (1.0, 1.0, 1.0, 1.0)
+    else:
+        assert wall.material.base_color == (1.0, 0.07, 0.40, 1.0)
+        assert cover.base_color == (0.0, 1.0, 0.0, 1.0)
+    assert wall.material.texture.name == "wallp_0.png"
+    # what the raster mode shows of the wall, unlit (radiance = base colour × texture)
+    from sceneforge.cameras import look_at_camera
+    from sceneforge.render import RenderConfig, Renderer
+
+    camera = look_at_camera([0.0, 1.5, 0.0], [-1.0, 0.0, 0.0], width=32, height=24)
+    with Renderer(32, 24, config=RenderConfig(flat=True, ambient=1.0, exposure=1.0, tone="clip")) as r:
+        rgb = r.render(house, camera)
+    expected = (255, 255, 255) if rule == "replace" else (255, 74, 170)  # sRGB of 1, 0.07, 0.40
+    np.testing.assert_allclose(rgb[8:16, 12:20].reshape(-1, 3), np.tile(expected, (64, 1)), atol=1)
 
 
 # ---- the OBJ reader ---------------------------------------------------------------------

@@ -19,6 +19,7 @@ House ids (:func:`house_ids`, the README's "Your own data"):
 
 from __future__ import annotations
 
+import typing
 from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -56,6 +57,9 @@ class LoadOptions:
     name_map: str | None = None
     #: 3D-FRONT: folder of 3D-FUTURE models (default: found beside the scene files)
     future_dir: str | None = None
+    #: SUNCG: what a material with both a colour (Kd) and a texture (map_Kd) shows: replace (the
+    #: texture alone, as PBRS's Mitsuba renders SUNCG) or multiply (Kd × texture, OpenGL's modulate)
+    suncg_textures: typing.Literal["replace", "multiply"] = "replace"
 
 
 #: Names accepted by ``--format``, in the registry's order.

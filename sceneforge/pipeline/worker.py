@@ -49,7 +49,8 @@ class Worker:
             from ..render import open_renderer
 
             self.renderer = open_renderer(config.rgb.mode, config.width, config.height, antialias=config.rgb.antialias,
-                                          config=config.rgb.lighting, samples=config.rgb.samples)
+                                          config=config.rgb.lighting, samples=config.rgb.samples,
+                                          denoise=config.rgb.denoise)
             self.renderer_key = key
         return self.renderer
 

@@ -38,17 +38,18 @@ __all__ = ["FAR", "INSTALL_EGL", "INSTALL_RENDER", "MODES", "NEAR", "Batch", "EG
 
 
 def open_renderer(mode: str, width: int, height: int, *, antialias: bool = False, config: RenderConfig | None = None,
-                  samples: int | None = None, seed: int = 0, gpu: int | None = None):
+                  samples: int | None = None, seed: int = 0, gpu: int | None = None, denoise: bool = True):
     """A renderer of ``mode`` (one of :data:`MODES`) for ``width`` × ``height`` images.
 
     antialias : raster only: 4× multisampling
     samples   : path tracing only: samples per pixel (None: its default)
     seed      : path tracing only: the sampler's seed
+    denoise   : path tracing only: denoise with Intel Open Image Denoise (:mod:`.denoise`)
     """
     if mode == "raster":
         return Renderer(width, height, gpu=gpu, antialias=antialias, config=config)
     if mode == "pathtraced":
         from .pathtrace import PathTracer
 
-        return PathTracer(width, height, config=config, samples=samples, seed=seed)
+        return PathTracer(width, height, config=config, samples=samples, seed=seed, denoise=denoise)
     raise ValueError(f"unknown RGB mode {mode!r}; expected one of {', '.join(MODES)}")

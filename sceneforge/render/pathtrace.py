@@ -9,8 +9,9 @@ Mitsuba's camera looks along its +z with +y up and +x to the *left* of the image
 pose is ``cam_to_world · diag(-1, -1, 1)``; the horizontal field of view is
 ``2 atan(W / 2 fx)`` and the principal point offset ``((W/2 - cx) / W, (H/2 - cy) / H)``
 (Mitsuba moves the image, not the principal point: the signs are OpenCV's negated).
-Mitsuba's sensor has square pixels and no skew: a camera with ``fx != fy`` or a skew is
-refused with a one-line error. Each pixel integrates its own square (a box filter of
+Mitsuba's sensor has square pixels and no skew: a camera whose fx and fy differ, or with
+a skew, by more than ``tol.square_pixels`` (1e-5 of fx: what a PBRS file's 6-decimal
+half-FOVs leave) is refused with a one-line error; within it, fx sets the field of view. Each pixel integrates its own square (a box filter of
 radius ½ pixel), so the image is antialiased: a silhouette pixel blends its two sides,
 while the pixels on either side of it show what the layers' centre ray sees.
 
@@ -23,7 +24,9 @@ area emitter of the sky's radiance (its faces wound into the room, reflecting no
 in place of the raster mode's spot light; no ambient term (the path tracer traces the
 indirect light). The radiance goes through the same exposure and tone-mapping step as
 the raster mode's (:func:`sceneforge.render.tonemap.tonemap`). The integrator is
-Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces.
+Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces, inside an ``aov`` integrator that also
+averages each pixel's albedo and shading normal; with ``denoise`` (the default) Intel Open
+Image Denoise removes the noise guided by them (:mod:`.denoise`) before the tone mapping.
 
 Determinism. A fixed sample count and seed give the same image on the same machine and
 variant: the view's seed is the renderer's seed mixed with a CRC of the camera (so views
@@ -48,6 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..colour import srgb_to_linear
+from ..conventions import tol
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import house_lights
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
@@ -66,8 +70,6 @@ MIN_LLVM = 16
 MAX_DEPTH = 6
 #: samples per pixel when none is given
 DEFAULT_SAMPLES = 64
-#: fx and fy may differ by this fraction, and the skew by this many pixels
-SQUARE_PIXEL_TOLERANCE = 1e-9
 
 
 def newest_llvm() -> tuple[int, str] | None:
@@ -126,7 +128,7 @@ def mitsuba_sensor(camera: "Camera") -> dict:
     :class:`SceneforgeError` for non-square pixels or a skew."""
     K, W, H = camera.K, camera.width, camera.height
     fx, fy, skew = K[0, 0], K[1, 1], K[0, 1]
-    if abs(fx - fy) > SQUARE_PIXEL_TOLERANCE * fx or abs(skew) > SQUARE_PIXEL_TOLERANCE:
+    if abs(fx - fy) > tol.square_pixels * fx or abs(skew) > tol.square_pixels * fx:
         raise SceneforgeError(f"path tracing needs square pixels and no skew (Mitsuba's camera has neither); "
                               f"K has fx {fx:g}, fy {fy:g}, skew {skew:g}: use --rgb raster")
     pose = camera.cam_to_world @ np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -149,12 +151,13 @@ class PathTracer(ToneMapped):
     config        : lights (as the raster mode's) and background
     samples       : samples per pixel (None: :data:`DEFAULT_SAMPLES`)
     seed          : the renderer's seed (module docs)
+    denoise       : denoise the radiance with its albedo and normal (:mod:`.denoise`)
 
     Keeps the Mitsuba scene of the last house it rendered (compared by identity).
     """
 
     def __init__(self, width: int, height: int, config: RenderConfig | None = None, samples: int | None = None,
-                 seed: int = 0):
+                 seed: int = 0, denoise: bool = True):
         if int(width) < 1 or int(height) < 1:
             raise ValueError(f"image size must be positive, got {width}×{height}")
         self.mi = _mitsuba()
@@ -164,6 +167,11 @@ class PathTracer(ToneMapped):
         if self.samples < 1:
             raise ValueError(f"samples must be at least 1, got {self.samples}")
         self.seed = int(seed)
+        self.denoise = bool(denoise)
+        if self.denoise:
+            from .denoise import denoise as check  # a missing pyoidn fails here, not at the first view
+
+            check(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)), np.zeros((1, 1, 3)))
         self._house = self._scene = None
 
     @property
@@ -188,13 +196,19 @@ class PathTracer(ToneMapped):
             "sampler": {"type": "independent", "sample_count": 1},
         })
         view_seed = (self.seed * 1_000_003 + zlib.crc32(camera.K.tobytes() + camera.cam_to_world.tobytes())) % 2 ** 31
-        total = np.zeros((self.height, self.width, 4))
+        # channels: radiance RGB, alpha, then the aov integrator's albedo RGB and normal XYZ
+        total = np.zeros((self.height, self.width, 10))
         for k in range(self.samples):
             image = mi.render(self._scene, sensor=sensor, spp=1, seed=view_seed + k)
-            total += np.nan_to_num(np.asarray(image, dtype=np.float64)[..., :4], nan=0.0, posinf=0.0, neginf=0.0)
+            total += np.nan_to_num(np.asarray(image, dtype=np.float64)[..., :10], nan=0.0, posinf=0.0, neginf=0.0)
         out = total / self.samples
+        radiance = out[..., :3]
+        if self.denoise:
+            from .denoise import denoise
+
+            radiance = denoise(radiance, out[..., 4:7], out[..., 7:10])
         # the film's alpha is the fraction of a pixel's samples that hit a surface
-        return out[..., :3], out[..., 3] > 0
+        return radiance, out[..., 3] > 0
 
     def close(self) -> None:
         """Forget the scene. Idempotent."""
@@ -212,7 +226,10 @@ class PathTracer(ToneMapped):
     def _build_scene(self, house: "House"):
         mi = self.mi
         # a pixel sees nothing beyond the house (the background is applied after tone mapping)
-        scene: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH}}
+        # the aov integrator adds each sample's albedo and shading normal (the denoiser's guides)
+        scene: dict = {"type": "scene", "integrator": {
+            "type": "aov", "aovs": "albedo:albedo,normal:sh_normal",
+            "integrator": {"type": "path", "max_depth": MAX_DEPTH}}}
         lights = house_lights(house, self.config)
         windows = {light.instance: light for light in lights if light.source == "window"}
         textures: dict[tuple, object] = {}

@@ -30,6 +30,14 @@ The scene JSON is read as the well-kept readers read it (the 3D-FRONT-ToolBox's
   up); exterior-only types (:data:`EXTERIOR_TYPES`: the outer faces of exterior walls and the
   sides and underside of the floor slab) are skipped and counted: no camera inside the house
   sees them, and kept as envelope they would end rays that leave through a window.
+- Meshes with an empty ``type`` (real files hold customised architecture so: uid
+  ``<n>/customizedfeaturemodel_1/<k>``, often with a ``constructid``) are typed from what
+  the file says (:func:`untyped_kind`): the type of the first mesh of the same
+  ``constructid`` that has one (the rest of the construct), else, for a customised feature
+  model (the uid's segment), its geometry's main orientation: mostly horizontal faces are a
+  ``CustomizedCeiling`` above :data:`CEILING_FEATURE_Y` and a ``CustomizedPlatform`` below it,
+  anything else a ``CustomizedFeatureWall`` (the panelled background walls these mostly
+  are). Each is counted (:data:`UNTYPED`); one none of this types keeps no category.
 - Openings: a released ``Door``/``Window``/``BayWindow``/``Hole``/``Pocket`` mesh is only the
   jamb around its opening (the door and window models are not released), so every ray would
   pass through into the next room or outside. A mesh of those types whose faces all run through
@@ -112,6 +120,13 @@ SCALE_LIMIT = 5.0
 #: an axis longer than 1 cm is flagged (raw or as scaled, metres or centimetres).
 SIZE_LIMIT = 2.0
 
+#: a horizontal customised feature model (no ``type``) whose lowest point is above this is a
+#: ceiling (a suspended or coffered ceiling), else a floor platform (metres above y = 0, the
+#: floor of 3D-FRONT's one-level houses)
+CEILING_FEATURE_Y = 1.5
+#: a face is horizontal when its unit normal's |y| is above this
+HORIZONTAL_FACE = 0.9
+
 # Reasons for House.count_loss.
 UNRELEASED = "furniture pieces skipped: unreleased (no 'valid': true)"
 DANGLING = "children skipped: their ref names no furniture or mesh uid"
@@ -122,6 +137,7 @@ BAD_PIECE = "pieces skipped: unreadable arrays, placement or geometry"
 EXTERIOR = "exterior-only meshes skipped (WallOuter, SlabSide, SlabBottom)"
 DROPPED = "pieces dropped: plants and persons"
 NO_TEXTURE = "architecture materials whose texture image is missing"
+UNTYPED = "meshes without a type, typed from their constructid or uid (kept)"
 SCALE_FLAG = f"furniture pieces flagged: a scale outside 1/{SCALE_LIMIT:g}..{SCALE_LIMIT:g} (kept)"
 SIZE_FLAG = f"furniture pieces flagged: model size {SIZE_LIMIT:g}x off the entry's bbox/size (kept)"
 
@@ -197,6 +213,29 @@ def lookup(names) -> tuple[str, int | None, bool]:
         if target is not None and cid is None and not is_dropped(0, target):
             cid = nyu40_id(target)
     return (names[0] if names else ""), cid, dropped
+
+
+def untyped_kind(entry: dict, xyz: np.ndarray, faces: np.ndarray, construct_types: dict[str, str]) -> str:
+    """The mesh type of a ``mesh[]`` entry whose ``type`` is empty (module docs), or "" when
+    nothing in the file says one.
+
+    xyz   : (n, 3) float64 its vertices
+    faces : (m, 3) int64   its faces
+    construct_types : ``constructid`` → the type of its first mesh that has one
+    """
+    construct = str(entry.get("constructid") or "")
+    if construct_types.get(construct):
+        return construct_types[construct]
+    segments = {re.sub(r"_\d+$", "", part.lower()) for part in str(entry.get("uid") or "").split("/")}
+    if "customizedfeaturemodel" not in segments or not len(faces):
+        return ""
+    tri = xyz[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(normal, axis=1)
+    flat = np.abs(normal[:, 1]) > HORIZONTAL_FACE * np.maximum(area, 1e-300)
+    if area.sum() > 0 and area[flat].sum() >= 0.5 * area.sum():
+        return "CustomizedCeiling" if xyz[:, 1].min() > CEILING_FEATURE_Y else "CustomizedPlatform"
+    return "CustomizedFeatureWall"
 
 
 def title_names(title) -> list[str]:
@@ -505,8 +544,10 @@ class _Reader:
             if not any(_size_agrees(e * unit, declared) for e in (raw, raw * scale) for unit in (1, 100)):
                 self.house.count_loss(SIZE_FLAG)
 
-    def mesh(self, entry: dict, child: dict, room_id: str | None, materials: dict) -> None:
-        kind = _key(entry.get("type") or "")
+    def mesh(self, entry: dict, child: dict, room_id: str | None, materials: dict,
+             construct_types: dict[str, str] | None = None) -> None:
+        kind_name = str(entry.get("type") or "").strip()
+        kind = _key(kind_name)
         uid = entry.get("uid")
         if kind in EXTERIOR_TYPES:
             self.house.count_loss(EXTERIOR)
@@ -518,7 +559,12 @@ class _Reader:
             return
         if not len(faces):
             return  # nothing to see, nothing lost: no category is looked up
-        cat = self.category([entry.get("type")], "mesh")
+        if not kind_name:
+            valid = faces.min() >= 0 and faces.max() < len(xyz)
+            kind_name = untyped_kind(entry, xyz, faces, construct_types or {}) if valid else ""
+            if kind_name:
+                self.house.count_loss(UNTYPED)
+        cat = self.category([kind_name], "mesh")
         if cat is None:
             return
         m = self.matrix(child)
@@ -625,6 +671,11 @@ def load_house(path: Path, options: LoadOptions) -> House:
     children = [c for room in rooms for c in room.get("children") or [] if isinstance(c, dict)]
     if any(furniture.get(c.get("ref"), {}).get("valid") is True for c in children):
         r.read_models()
+    construct_types: dict[str, str] = {}
+    for entry in meshes.values():
+        construct, kind = str(entry.get("constructid") or ""), str(entry.get("type") or "").strip()
+        if construct and kind:
+            construct_types.setdefault(construct, kind)
     for room in rooms:
         # the writer's convention for pieces outside any room: a room without an instanceid
         room_id = str(room.get("instanceid") or "") or None
@@ -635,7 +686,7 @@ def load_house(path: Path, options: LoadOptions) -> House:
             if ref in furniture:
                 r.furniture(furniture[ref], child, room_id)
             elif ref in meshes:
-                r.mesh(meshes[ref], child, room_id, materials)
+                r.mesh(meshes[ref], child, room_id, materials, construct_types)
             else:
                 r.house.count_loss(DANGLING)
     return r.finish()

@@ -45,6 +45,10 @@ class Mesh:
     aliases  : further names its category may be looked up by (a glTF node's mesh name)
     face_material : (m,) int32  each face's index into the ``material`` tuple, or None
     colors   : (n, 4) float32  linear RGBA per vertex multiplying the material, or None
+    material_names : the file's name of each face group's material (OBJ ``usemtl``; "" for
+               the default), in :attr:`materials` order; () when the format has none
+    library  : every material the file's libraries define, by name in file order (OBJ
+               ``newmtl``, used or not: SUNCG's node overrides count materials in it)
     """
 
     vertices: np.ndarray
@@ -55,6 +59,8 @@ class Mesh:
     aliases: tuple[str, ...] = ()
     face_material: np.ndarray | None = None
     colors: np.ndarray | None = None
+    material_names: tuple[str, ...] = ()
+    library: tuple[str, ...] = ()
 
     @property
     def materials(self) -> tuple[Material, ...]:

@@ -350,21 +350,24 @@ def _mesh(obj: _Obj, triangles: np.ndarray, name: str, vertices: np.ndarray, fac
     # one face group per usemtl name its faces use, in order of first use; faces before any
     # usemtl (or naming a material no library has) get the default material
     named = obj.line_mtl[obj.tri_line[triangles]]
+    library = tuple(obj.materials)
     if not len(named) or (named < 0).all():
-        return Mesh(vertices, faces, uv, None, name)
+        return Mesh(vertices, faces, uv, None, name, material_names=("",), library=library)
     used, first, group = np.unique(named, return_index=True, return_inverse=True)
     order = np.argsort(first, kind="stable")
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
-    materials = []
+    materials, names = [], []
     for code in used[order]:
         material = obj.materials.get(obj.mtl_names[code]) if code >= 0 else None
         if code >= 0 and material is None:
             warn(f"material {obj.mtl_names[code]!r} is not in any material library; default colour")
         materials.append(material or Material())
+        names.append(obj.mtl_names[code] if code >= 0 else "")
     if len(materials) == 1:
-        return Mesh(vertices, faces, uv, materials[0], name)
-    return Mesh(vertices, faces, uv, tuple(materials), name, face_material=rank[group.reshape(-1)].astype(np.int32))
+        return Mesh(vertices, faces, uv, materials[0], name, material_names=tuple(names), library=library)
+    return Mesh(vertices, faces, uv, tuple(materials), name, face_material=rank[group.reshape(-1)].astype(np.int32),
+                material_names=tuple(names), library=library)
 
 
 def _split_seams(vertices: np.ndarray, faces: np.ndarray, tex: np.ndarray, uvs: np.ndarray):

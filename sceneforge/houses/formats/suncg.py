@@ -22,8 +22,23 @@ or ``Box``.
 - Box nodes are boxes of size ``dimensions`` centred on their origin, then transformed.
   They have no model id, hence no category: void, as in the toolbox.
 - Object nodes load ``object/<modelId>/<modelId>.obj`` (``<modelId>_0.obj`` when ``state``
-  is 1). A missing model file is an error.
+  is 1). A missing model file is an error. Their ``materials`` list overrides the model's
+  own materials as the toolbox's ``ParseSUNCGMaterials`` does (:func:`_overrides`): entry
+  *i* replaces the model's *i*-th material (the *i*-th ``newmtl`` of its ``.mtl``), its
+  ``diffuse`` (``#rrggbb``) the colour and its ``texture`` the image
+  (``<root>/texture/<name>.png``, else ``.jpg``); an entry with neither, or past the
+  model's materials, changes nothing.
 - Everything is scaled by ``scaleToMeters``.
+
+Textured materials. A SUNCG ``.mtl`` material usually has both ``Kd`` and ``map_Kd``, and
+``Kd`` is often a saturated colour under a plain texture (walls: ``Kd 1 0.07 0.40`` over
+the pure white ``wallp_0.jpg``). ``LoadOptions.suncg_textures`` decides what the material
+shows: ``replace`` (default) the texture alone, ``multiply`` ``Kd`` × the texture. PBRS,
+the paper's RGB, rendered SUNCG with Mitsuba, whose OBJ importer takes ``map_Kd`` in place of
+``Kd`` (mitsuba-renderer/mitsuba ``src/shapes/obj.cpp``, ``loadMaterialLibrary``: both set
+the one ``diffuse`` reflectance, ``map_Kd`` last), and shows those walls white; OpenGL's
+modulate (the toolbox's viewer) would show them magenta. A node's ``diffuse`` override is a
+``Kd`` like the others: under ``replace`` it shows only on materials without a texture.
 
 In sceneforge terms: an object's NYU40 class is its model's ``nyuv2_40class`` and its label
 the ``fine_grained_class`` (so the fireplace/person/plant rules of
@@ -38,6 +53,7 @@ from __future__ import annotations
 import csv
 import json
 import re
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -137,6 +153,7 @@ class _Reader:
         if len(parents) < 3:
             raise self.error("a SUNCG house.json lies in <root>/house/<id>/")
         self.root = parents[2]
+        self.textures = options.suncg_textures
         self.csv_path = self.root / CATEGORY_CSV
         self._objs: dict[Path, Mesh] = {}
 
@@ -197,9 +214,13 @@ class _Reader:
 
     def add(self, name, category, label, room_id, mesh: Mesh, matrix, file, material=None):
         v, f = place(mesh.vertices, mesh.faces, matrix)
+        args = {"material": material} if material is not None else mesh.instance_args()
+        if self.textures == "replace" and args["material"] is not None:
+            given = args["material"]
+            args["material"] = (tuple(map(_texture_alone, given)) if isinstance(given, tuple)
+                                else _texture_alone(given))
         make_instance(self.house, name=name, category=category, label=label, room_id=room_id,
-                      vertices=v, faces=f, uv=mesh.uv, file=file,
-                      **({"material": material} if material is not None else mesh.instance_args()))
+                      vertices=v, faces=f, uv=mesh.uv, file=file, **args)
 
     # ---- node types ----
 
@@ -259,8 +280,60 @@ class _Reader:
         file = self.root / "object" / model / f"{stem}.obj"
         if not file.is_file():
             raise self.error(f"object node {node_id}: model file is missing", file)
-        self.add(f"Object#{node_id}", category, label, room_id, self.obj(file),
-                 self.matrix(node, node_id), file)
+        mesh = self.obj(file)
+        if isinstance(node.get("materials"), list):
+            mesh = self.overrides(mesh, node["materials"], node_id)
+        self.add(f"Object#{node_id}", category, label, room_id, mesh, self.matrix(node, node_id), file)
+
+    def overrides(self, mesh: Mesh, entries: list, node_id: str) -> Mesh:
+        """``mesh`` with an Object node's ``materials`` applied (module docs).
+
+        As SUNCGtoolbox's ``ParseSUNCGMaterials`` (gaps/pkgs/R3Graphics/R3Scene.cpp): entry
+        ``index`` pairs with ``input_materials.Kth(index)``, the model's materials in the
+        order its ``.mtl`` defines them (``ReadObjMtlFile`` inserts one per ``newmtl``); a
+        ``diffuse`` string ``#rrggbb`` is read as three hex bytes / 255 into the copied BRDF's
+        diffuse; a ``texture`` name is ``../../texture/<name>.png`` from the house folder,
+        else ``.jpg``, and replaces the texture (else the input's is kept). The toolbox
+        fails the house on an unreadable texture; here it is a warning and the model's own
+        texture stays (the geometry is right either way).
+        """
+        by_name: dict[str, Material] = {}
+        own = dict(zip(mesh.material_names, mesh.materials, strict=True))
+        for index, entry in enumerate(entries):
+            if not isinstance(entry, dict) or index >= len(mesh.library) or mesh.library[index] not in own:
+                continue  # not a material entry, past the model's materials, or one no face uses
+            name = mesh.library[index]
+            material = by_name.get(name, own[name])
+            diffuse = str(entry.get("diffuse") or "")
+            if diffuse:
+                if re.fullmatch(r"#[0-9a-fA-F]{6}", diffuse):
+                    rgb = tuple(int(diffuse[i:i + 2], 16) / 255 for i in (1, 3, 5))
+                    material = replace(material, base_color=(*rgb, material.base_color[3]))
+                else:
+                    self.house.warnings.append(f"object node {node_id}: material {index} diffuse {diffuse!r} "
+                                               "is not #rrggbb, ignored")
+            texture = str(entry.get("texture") or "")
+            if texture:
+                image = next((p for p in (self.root / "texture" / f"{texture}{ext}" for ext in (".png", ".jpg"))
+                              if p.is_file()), None)
+                if image is None:
+                    self.house.warnings.append(f"object node {node_id}: texture {texture!r} not found in "
+                                               f"{self.root / 'texture'}, the model's own kept")
+                else:
+                    material = replace(material, texture=image)
+            by_name[name] = material
+        if not by_name:
+            return mesh
+        materials = tuple(by_name.get(n, m) for n, m in zip(mesh.material_names, mesh.materials, strict=True))
+        return replace(mesh, material=materials if isinstance(mesh.material, tuple) else materials[0])
+
+
+def _texture_alone(material: Material) -> Material:
+    """``material`` showing its texture alone (``suncg_textures`` ``replace``): its colour
+    white, its opacity kept; a material without a texture as it is."""
+    if material.texture is None:
+        return material
+    return replace(material, base_color=(1.0, 1.0, 1.0, material.base_color[3]))
 
 
 def _node_material(node: dict) -> Material | None:
