@@ -71,6 +71,7 @@ def test_path_traced_silhouettes_are_on_d1_edges(mi):
 
 
 def test_same_view_path_traced_twice_is_byte_identical(mi):
+    # denoised, the default: the denoiser keeps the frames deterministic
     house, _, camera = red_box_room()
     with open_renderer("pathtraced", 160, 120, samples=4, seed=3) as a:
         first = a.render(house, camera)
@@ -270,13 +271,3 @@ def test_denoiser_keeps_label_edges_where_they_are(mi):
         rgb = r.render(house, camera)
     on, off = edge_contrast(rgb, d1)
     assert on >= 1.5 * off, (on, off)
-
-
-def test_denoised_frames_are_byte_identical(mi):
-    house, _, camera = red_box_room()
-    with open_renderer("pathtraced", 160, 120, samples=2, seed=3) as a:
-        first = a.render(house, camera)
-        assert np.array_equal(a.render(house, camera), first)
-    with open_renderer("pathtraced", 160, 120, samples=2, seed=3) as b:
-        assert np.array_equal(b.render(house, camera), first)
-
