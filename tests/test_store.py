@@ -31,7 +31,7 @@ from sceneforge.view import compute_view
 
 #: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
 SMALL = {"width": 32, "height": 24, "views_per_house": 2, "view": {"overhead": {"resolution": 16}},
-         "store": {"views_per_shard": 4, "normals": True}}
+         "store": {"views_per_shard": 4, "normals": True, "gt_mesh": "all"}}
 
 
 @pytest.fixture(autouse=True)
