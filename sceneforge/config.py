@@ -95,11 +95,13 @@ class StoreConfig:
 
     #: views per shard file: every per-view array keeps one view per chunk and this many per shard
     views_per_shard: int = 4
-    #: compressor of every array: "blosc-zstd" (Blosc byte-shuffles multi-byte values, then zstd:
-    #: the ground-truth meshes' face indices come out ~12x smaller than with plain zstd) or "zstd"
-    #: (plain zstd, for readers without Blosc); both are zarr v3 core codecs
-    codec: typing.Literal["blosc-zstd", "zstd"] = "blosc-zstd"
-    #: compression level of every array (1 fastest; 9 smallest for blosc-zstd, 22 for zstd)
+    #: how arrays are compressed: "blosc-zstd-per-array" (Blosc, then zstd; each array's shuffle
+    #: and one Blosc block per chunk chosen by measurement, benchmarks/bench_store_bytes.py),
+    #: "blosc-zstd" (Blosc byte-shuffles every array alike, Blosc's own blocks, then zstd: the
+    #: stores written before per-array codecs) or "zstd" (plain zstd, for readers without Blosc);
+    #: all zarr v3 core codecs, and the arrays' values are the same with any of them
+    codec: typing.Literal["blosc-zstd-per-array", "blosc-zstd", "zstd"] = "blosc-zstd-per-array"
+    #: compression level of every array (1 fastest; 9 smallest with Blosc, 22 with plain zstd)
     compression_level: int = 3
     #: also store the first-hit normals (N, 3, H, W) float32, camera frame (SPEC §4.6)
     normals: bool = False
@@ -111,7 +113,7 @@ class StoreConfig:
     def __post_init__(self):
         if self.views_per_shard < 1:
             raise ValueError(f"views_per_shard must be at least 1, got {self.views_per_shard}")
-        top = 9 if self.codec == "blosc-zstd" else 22
+        top = 22 if self.codec == "zstd" else 9
         if not 1 <= self.compression_level <= top:
             raise ValueError(f"compression_level must be in 1..{top} for codec {self.codec}, "
                              f"got {self.compression_level}")

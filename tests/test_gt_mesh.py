@@ -12,6 +12,7 @@ import pytest
 import zarr
 from click.testing import CliRunner
 from sceneforge.cli.main import LazyGroup
+
 from sceneforge.config import DatasetConfig, load_config
 from sceneforge.errors import SceneforgeError
 from sceneforge.houses import bundled_toy_dir

@@ -49,6 +49,8 @@ class ArraySpec:
     description : what it holds
     source      : per-view arrays: where a written view's values come from, an attribute
                   path on :func:`view_arrays`' arguments (``gt.layers.depth``, ``house_id``)
+    shuffle     : Blosc's shuffle for the array under the ``blosc-zstd-per-array`` codec:
+                  ``shuffle`` (bytes), ``bitshuffle`` or ``noshuffle``, chosen by measurement
     """
 
     name: str
@@ -59,6 +61,7 @@ class ArraySpec:
     optional: str | None
     description: str
     source: str | None = None
+    shuffle: str = "shuffle"
 
     def shape(self, sizes: dict[str, int]) -> tuple[int, ...]:
         """The concrete shape for ``sizes`` (``{"N": .., "H": .., ...}``)."""
@@ -94,6 +97,7 @@ def layout() -> dict[str, ArraySpec]:
             optional=p.get("x-optional"),
             description=p["description"],
             source=p.get("x-source"),
+            shuffle=p.get("x-shuffle", "shuffle"),
         )
         for name, p in props.items()
     }
