@@ -7,8 +7,8 @@ byte-shuffled with Blosc's own blocks), with the new (no meshes, ``blosc-zstd-pe
 and with the new codecs and the meshes (``--gt-mesh all``). Prints the bytes per view of
 every array (its shard files over the views), checks that every array of the new stores
 has the values of the old store's (``array_digests``), then
-tries codecs and Blosc block sizes on each large array of the stores, all zarr v3 core
-codecs and all lossless, at the store's chunking (one view per chunk, 4 per shard; meshes
+tries codecs, Blosc block sizes and (on image layers) the transpose codec on each large
+array of the stores, all zarr v3 core codecs and all lossless, at the store's chunking (one view per chunk, 4 per shard; meshes
 65,536 rows per chunk): bytes per view and write time per view (a loaded machine's
 timings: compare rows of one run only). ``<-`` marks what the new default writes.
 
@@ -28,7 +28,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads: BLAS t
 
 import numpy as np  # noqa: E402
 import zarr  # noqa: E402
-from zarr.codecs import BloscCodec, ZstdCodec  # noqa: E402
+from zarr.codecs import BloscCodec, TransposeCodec, ZstdCodec  # noqa: E402
 from zarr.storage import MemoryStore  # noqa: E402
 
 from sceneforge.config import load_config  # noqa: E402
@@ -89,12 +89,12 @@ def digests_equal(before: Path, after: Path) -> None:
         raise SystemExit("the codecs changed array values")
 
 
-def encoded(data: np.ndarray, chunks: tuple, shards: tuple, compressor) -> tuple[float, float]:
-    """(bytes, write seconds) of ``data`` as a sharded zarr array compressed by ``compressor``,
-    after checking it reads back equal."""
+def encoded(data: np.ndarray, chunks: tuple, shards: tuple, compressor, filters=()) -> tuple[float, float]:
+    """(bytes, write seconds) of ``data`` as a sharded zarr array compressed by ``compressor``
+    after ``filters``, after checking it reads back equal."""
     group = zarr.open_group(MemoryStore(), mode="w")
     array = group.create_array("a", shape=data.shape, dtype=data.dtype, chunks=chunks, shards=shards,
-                               compressors=compressor, fill_value=0)
+                               filters=filters, compressors=compressor, fill_value=0)
     t0 = time.perf_counter()
     array[...] = data
     seconds = time.perf_counter() - t0
@@ -104,19 +104,25 @@ def encoded(data: np.ndarray, chunks: tuple, shards: tuple, compressor) -> tuple
     return sum(len(f.to_bytes()) for f in files), seconds
 
 
-def candidates(chunk_bytes: int) -> dict[str, object]:
+def candidates(chunk_bytes: int, image_axes: int | None) -> dict[str, tuple]:
+    """Label → (compressor, filters); ``image_axes``: the number of axes of an array that
+    ends with an image's rows and columns (None: another array)."""
     out = {}
     for shuffle in ("noshuffle", "shuffle", "bitshuffle"):
         for blocks, size in (("Blosc's blocks", 0), ("block = chunk", chunk_bytes)):
-            out[f"blosc zstd 3 {shuffle}, {blocks}"] = BloscCodec(cname="zstd", clevel=3, shuffle=shuffle,
-                                                                  blocksize=size)
+            out[f"blosc zstd 3 {shuffle}, {blocks}"] = (
+                BloscCodec(cname="zstd", clevel=3, shuffle=shuffle, blocksize=size), ())
     for shuffle in ("shuffle", "bitshuffle"):
-        out[f"blosc zstd 5 {shuffle}, block = chunk"] = BloscCodec(cname="zstd", clevel=5, shuffle=shuffle,
-                                                                   blocksize=chunk_bytes)
-        out[f"blosc lz4 5 {shuffle}, block = chunk"] = BloscCodec(cname="lz4", clevel=5, shuffle=shuffle,
-                                                                  blocksize=chunk_bytes)
+        for cname in ("zstd", "lz4"):
+            out[f"blosc {cname} 5 {shuffle}, block = chunk"] = (
+                BloscCodec(cname=cname, clevel=5, shuffle=shuffle, blocksize=chunk_bytes), ())
+    if image_axes is not None:  # images stored column by column (the transpose codec)
+        order = (*range(image_axes - 2), image_axes - 1, image_axes - 2)
+        out["transpose to (W, H), blosc zstd 3 shuffle, block = chunk"] = (
+            BloscCodec(cname="zstd", clevel=3, shuffle="shuffle", blocksize=chunk_bytes),
+            (TransposeCodec(order=order),))
     for level in (3, 9):
-        out[f"zstd {level} (no Blosc)"] = ZstdCodec(level=level)
+        out[f"zstd {level} (no Blosc)"] = (ZstdCodec(level=level), ())
     return out
 
 
@@ -135,10 +141,11 @@ def trials(before: Path, after: Path) -> None:
         chunk_bytes = int(np.prod(chunks)) * data.dtype.itemsize
         chosen = array_compressor(config, specs[name], chunks)
         print(f"  {name} {data.shape} {data.dtype}, raw {data.nbytes / n / 1e3:.1f} kB/view")
-        for label, compressor in candidates(chunk_bytes).items():
-            size, seconds = encoded(data, chunks, shards, compressor)
-            mark = "  <-" if compressor.to_dict() == chosen.to_dict() else ""
-            print(f"    {label:<40}{size / n / 1e3:>9.1f} kB/view {1e3 * seconds / n:>7.1f} ms/view{mark}")
+        image = specs[name].dims[-2:] in (("H", "W"), ("Ho", "Wo"))
+        for label, (compressor, filters) in candidates(chunk_bytes, data.ndim if image else None).items():
+            size, seconds = encoded(data, chunks, shards, compressor, filters)
+            mark = "  <-" if compressor.to_dict() == chosen.to_dict() and not filters else ""
+            print(f"    {label:<58}{size / n / 1e3:>9.1f} kB/view {1e3 * seconds / n:>7.1f} ms/view{mark}")
 
 
 def main():
