@@ -165,3 +165,30 @@ def test_the_config_moved_view_with_mesh_to_store_gt_mesh():
     with pytest.raises(SceneforgeError, match="'view.with_mesh' was removed: .*store.gt_mesh"):
         DatasetConfig.from_dict({"view": {"with_mesh": True}})
     assert "with_mesh" not in load_config().to_dict()["view"]
+
+
+def test_houses_given_by_a_relative_path_are_found_from_another_folder(houses, tmp_path, monkeypatch):
+    shutil.copytree(houses / "toy_0_002", tmp_path / "mine" / "toy_0_002")
+    monkeypatch.chdir(tmp_path)
+    assert run("render", "mine", "one.zarr", *RENDER, "--gt-mesh", "all").exit_code == 0
+    store = open_store("one.zarr")
+    assert store.attrs["houses"][0]["path"] == "mine/toy_0_002"  # as HOUSES was given
+    stored = store.mesh(0)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    lean = open_store("../one.zarr")
+    lean.has_mesh = False  # make them, as for a store that keeps none
+    made = GroundTruthMeshes(lean).mesh(0)
+    for kind in MESH_KINDS:
+        np.testing.assert_array_equal(made[kind][1], stored[kind][1])
+
+
+def test_a_store_of_predictions_has_no_meshes_to_make(stores, tmp_path):
+    lean, _ = stores
+    copy = tmp_path / "pred.zarr"
+    shutil.copytree(lean, copy)
+    group = zarr.open_group(str(copy), mode="r+")
+    group.attrs["prediction"] = {"views": [0]}
+    with pytest.raises(SceneforgeError, match="a store of predictions has no ground-truth meshes"):
+        ground_truth_meshes(str(copy)).mesh(0)

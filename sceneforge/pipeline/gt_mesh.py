@@ -9,10 +9,11 @@ store's ``houses`` options), the objects are cut out by the view's *stored* D5 a
 instance layers, the envelope is its D5 traced afresh at the store's mesh rules, and the
 vertices are rounded to float32 as the store rounds them.
 
-A house is used only if every input file the run fingerprinted still hashes as recorded
-(:mod:`.inputs`); otherwise the meshes would be those of another house, and a score of
-them wrong, so that is a :class:`SceneforgeError` naming the house and its first changed
-file. Made meshes are cached in ``STORE.gt_mesh/`` (:func:`cache_folder`), one file per
+A house is read from its recorded path (a relative one also from another folder, through
+its fingerprinted files' absolute paths: :func:`house_path`) and used only if every input
+file the run fingerprinted still hashes as recorded (:mod:`.inputs`); otherwise the meshes
+would be those of another house, and a score of them wrong, so that is a
+:class:`SceneforgeError` naming the house and its first changed file. Made meshes are cached in ``STORE.gt_mesh/`` (:func:`cache_folder`), one file per
 view, keyed by everything they are made from: the house's fingerprints, the read options,
 the mesh rules, the camera, the view's layers and the sceneforge version; a file whose key
 differs is made again and replaced.
@@ -81,6 +82,9 @@ class GroundTruthMeshes:
         """
         if self.store.has_mesh:
             return self.store.mesh(i)
+        if "prediction" in self.store.attrs:
+            raise SceneforgeError("a store of predictions has no ground-truth meshes: they come from the store of "
+                                  "ground truth it was predicted from")
         view = self.store.view(i)
         i = int(i) % len(self.store)
         house_id = str(view["house_id"])
@@ -127,7 +131,7 @@ class GroundTruthMeshes:
 
         if self._house is None or self._house[0] != record["id"]:
             self._house = None
-            house = load(HouseSource(record["id"], record["format"], Path(record["path"])), self.store.config.houses)
+            house = load(HouseSource(record["id"], record["format"], house_path(record)), self.store.config.houses)
             self._house = (record["id"], house, HouseTracer(house))
         return self._house[1], self._house[2]
 
@@ -198,6 +202,22 @@ class GroundTruthMeshes:
             if tmp is not None:
                 with contextlib.suppress(OSError):
                     os.unlink(tmp)
+
+
+def house_path(record: dict) -> Path:
+    """Where the house of a store's provenance ``record`` is: its recorded ``path``, which is
+    relative to the folder render ran in when HOUSES was given so; from another folder, the
+    same path inside the absolute paths its fingerprinted files were read from."""
+    path = Path(record["path"])
+    if path.is_absolute() or path.exists():
+        return path
+    tail = "/" + path.as_posix().strip("/")
+    for read in record.get("inputs") or {}:
+        read = Path(read).as_posix()
+        at = (read + "/").find(tail + "/")
+        if at >= 0:
+            return Path(read[: at + len(tail)])
+    return path
 
 
 def ground_truth_meshes(path: str, storage_options: dict | None = None) -> GroundTruthMeshes:
