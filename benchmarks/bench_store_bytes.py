@@ -6,11 +6,11 @@ defaults (``store.gt_mesh: all``, ``store.codec: blosc-zstd``: meshes kept, ever
 byte-shuffled with Blosc's own blocks), with the new (no meshes, ``blosc-zstd-per-array``),
 and with the new codecs and the meshes (``--gt-mesh all``). Prints the bytes per view of
 every array (its shard files over the views), checks that every array of the new stores
-has the values of the old store's (``array_digests``), then
-tries codecs, Blosc block sizes and (on image layers) the transpose codec on each large
-array of the stores, all zarr v3 core codecs and all lossless, at the store's chunking (one view per chunk, 4 per shard; meshes
-65,536 rows per chunk): bytes per view and write time per view (a loaded machine's
-timings: compare rows of one run only). ``<-`` marks what the new default writes.
+has the values of the old store's (``array_digests``), then tries codecs, Blosc block
+sizes and (on image arrays) the transpose codec on each large array, all zarr v3 core
+codecs and all lossless, at the store's chunking (one view per chunk, 4 per shard; meshes
+65,536 rows per chunk): bytes and write time per view (timings of a loaded machine: compare
+the rows of one run only). ``<-`` marks what the new default writes.
 
     python benchmarks/bench_store_bytes.py [--scenes toy,breakfast_room] [--keep DIR]
 """

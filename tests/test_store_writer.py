@@ -32,7 +32,8 @@ from sceneforge.store import (  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: 7 views of 8 x 6 pixels, 4 x 4 overhead, 3 views per shard: shards of 3, 3 and 1 views
 N = 7
-SMALL = {"width": 8, "height": 6, "view": {"overhead": {"resolution": 4}}, "store": {"views_per_shard": 3, "gt_mesh": "all"}}
+SMALL = {"width": 8, "height": 6, "view": {"overhead": {"resolution": 4}},
+         "store": {"views_per_shard": 3, "gt_mesh": "all"}}
 
 
 def random_views(config, rng: np.random.Generator) -> list[dict[str, np.ndarray]]:

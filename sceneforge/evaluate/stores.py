@@ -86,7 +86,8 @@ def check_matching(pred, gt, indices: Collection[int]) -> None:
         matching_view(pred, gt, int(rows[np.flatnonzero(far)[0]]))
 
 
-def coverage_views(store, limit: int | None = None, meshes=None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+def coverage_views(store, limit: int | None = None,
+                   meshes=None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
     """``(index, view, ground-truth mesh)`` of every view of ``store`` to score, read lazily
     (what :func:`~sceneforge.evaluate.evaluate_views` takes); the meshes from ``meshes``
     (default: ``store``)."""

@@ -13,9 +13,11 @@ A house is read from its recorded path (a relative one also from another folder,
 its fingerprinted files' absolute paths: :func:`house_path`) and used only if every input
 file the run fingerprinted still hashes as recorded (:mod:`.inputs`); otherwise the meshes
 would be those of another house, and a score of them wrong, so that is a
-:class:`SceneforgeError` naming the house and its first changed file. Made meshes are cached in ``STORE.gt_mesh/`` (:func:`cache_folder`), one file per
-view, keyed by everything they are made from: the house's fingerprints, the read options,
-the mesh rules, the camera, the view's layers and the sceneforge version; a file whose key
+:class:`SceneforgeError` naming the house and its first changed file.
+
+Made meshes are cached in ``STORE.gt_mesh/`` (:func:`cache_folder`), one file per view,
+keyed by everything they are made from: the house's fingerprints, the read options, the
+mesh rules, the camera, the view's layers and the sceneforge version; a file whose key
 differs is made again and replaced.
 """
 
