@@ -41,6 +41,16 @@ def _check(plot, json_path):
     check_output(json_path, "JSON file")
 
 
+def _truth(path: str):
+    """The store at ``path`` and its views' ground-truth meshes: its own, or made from its
+    houses and cached beside it (``PATH.gt_mesh/``) when it keeps none."""
+    from sceneforge.pipeline.gt_mesh import GroundTruthMeshes, cache_folder
+    from sceneforge.store import open_store
+
+    store = open_store(path)
+    return store, GroundTruthMeshes(store, cache_folder(path))
+
+
 def _scored(views, total: int):
     """``views`` on a progress bar of ``total`` views (scoring takes seconds per view)."""
     from rich.console import Console
@@ -92,11 +102,10 @@ def coverage(store, config, limit, json_path, plot):
     SUNCG numbers; also recall against objects alone and precision."""
     from sceneforge.evaluate import COVERAGE_VARIANTS, coverage_views, evaluate_views
     from sceneforge.evaluate.stores import views_to_score
-    from sceneforge.store import open_store
 
     _check(plot, json_path)
-    s = open_store(store)
-    views = _scored(coverage_views(s, limit), len(views_to_score(s, limit)))
+    s, meshes = _truth(store)
+    views = _scored(coverage_views(s, limit, meshes), len(views_to_score(s, limit)))
     report = evaluate_views(views, COVERAGE_VARIANTS, config.seed, config.surface, config.meshing)
     _write(report, report.coverage_text(), plot, json_path, f"coverage of ground-truth layers: {store}")
 
@@ -139,7 +148,7 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     from sceneforge.store import open_store
 
     _check(plot, json_path)
-    pred_store, gt_store = open_store(pred), open_store(gt)
+    pred_store, (gt_store, gt_meshes) = open_store(pred), _truth(gt)
     try:
         houses = _house_split(split_file, pred_store, gt)
     except SceneforgeError as e:
@@ -170,7 +179,7 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
         extra["learning"] = learning_scores(pred_store, gt_store, indices, training_baselines(gt_store, train),
                                             prediction.get("stages", ("depth", "seg", "overhead")),
                                             same_overhead_cameras=prediction.get("camera_run") is None)
-    views = _scored(prediction_views(pred_store, gt_store, indices=indices), len(indices))
+    views = _scored(prediction_views(pred_store, gt_store, indices=indices, meshes=gt_meshes), len(indices))
     report = evaluate_views(views, PREDICTION_VARIANTS, config.seed, config.surface, config.meshing)
     _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}", extra)
 
@@ -196,8 +205,9 @@ def voxels(layers, gt, config, limit, plot):
     from sceneforge.store import open_store
 
     check_output(plot, "plot")
-    report = score_store_voxels(open_store(layers), open_store(gt) if gt else None, config.voxels, limit,
-                                on_view=lambda v: click.echo(_voxel_line(v)))
+    truth, meshes = _truth(gt or layers)
+    report = score_store_voxels(open_store(layers) if gt else truth, truth if gt else None, config.voxels, limit,
+                                on_view=lambda v: click.echo(_voxel_line(v)), meshes=meshes)
     mean = "—" if report.scored == 0 else f"{report.mean:.3f}"
     click.echo(f"mean voxel IoU {mean} over {report.scored} views "
                f"({len(report.views) - report.scored} without objects)")

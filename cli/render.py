@@ -50,6 +50,7 @@ RENDER_OPTIONS = (
                       "array); sets rgb.mode and rgb.enabled"),
     ConfigOption("--rgb-samples", "rgb.samples", type=click.IntRange(min=1)),
     ConfigOption("--rgb-denoise", "rgb.denoise"),
+    ConfigOption("--gt-mesh", "store.gt_mesh"),
 )
 
 
@@ -73,7 +74,8 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
-    truth, RGB and the ground-truth meshes (layout: schemas/store.schema.json). HOUSES is
+    truth and RGB (layout: schemas/store.schema.json); the ground-truth meshes only with
+    --gt-mesh all (else `sceneforge evaluate` makes them from the houses). HOUSES is
     anything `sceneforge houses inspect` takes, e.g. `bundled:toy`.
 
     Run the same command again after an interruption to resume; the result is identical

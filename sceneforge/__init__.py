@@ -19,4 +19,8 @@ def __getattr__(name: str):
         from .store import open_store
 
         return open_store
+    if name == "ground_truth_meshes":
+        from .pipeline.gt_mesh import ground_truth_meshes
+
+        return ground_truth_meshes
     raise AttributeError(f"module 'sceneforge' has no attribute {name!r}")

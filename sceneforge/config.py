@@ -44,7 +44,8 @@ from .render import RenderConfig
 from .view import ViewConfig
 
 #: Fields of a sub-config that a config file does not set (they follow another field).
-_DERIVED: dict[type, frozenset[str]] = {CameraSamplerConfig: frozenset({"width", "height"})}
+_DERIVED: dict[type, frozenset[str]] = {CameraSamplerConfig: frozenset({"width", "height"}),
+                                        ViewConfig: frozenset({"with_mesh"})}
 
 #: Keys earlier versions of the render config had, by dotted name, and what replaced them.
 #: A config a store recorded drops them (its arrays were made already); a config file a user
@@ -53,6 +54,12 @@ RETIRED: dict[str, str] = {
     "rgb.lighting.light": "lights are physical now: set rgb.lighting.lamp_power (lumens), "
                           "and rgb.lighting.exposure for a fixed exposure",
     "rgb.lighting.window_light": "windows are sky panels now: set rgb.lighting.sky_luminance (cd/m²)",
+    "view.with_mesh": "whether the store keeps the ground-truth meshes is store.gt_mesh now: \"all\" or \"none\"",
+}
+#: Retired keys whose value a recorded config carries over to the key that replaced them:
+#: dotted name → (new dotted name, the new value from the old).
+CARRIED: dict[str, tuple[str, typing.Callable]] = {
+    "view.with_mesh": ("store.gt_mesh", lambda with_mesh: "all" if with_mesh else "none"),
 }
 
 
@@ -88,19 +95,25 @@ class StoreConfig:
 
     #: views per shard file: every per-view array keeps one view per chunk and this many per shard
     views_per_shard: int = 4
-    #: compressor of every array: "blosc-zstd" (Blosc byte-shuffles multi-byte values, then zstd:
-    #: the ground-truth meshes' face indices come out ~12x smaller than with plain zstd) or "zstd"
-    #: (plain zstd, for readers without Blosc); both are zarr v3 core codecs
-    codec: typing.Literal["blosc-zstd", "zstd"] = "blosc-zstd"
-    #: compression level of every array (1 fastest; 9 smallest for blosc-zstd, 22 for zstd)
+    #: how arrays are compressed: "blosc-zstd-per-array" (Blosc, then zstd; each array's shuffle
+    #: and one Blosc block per chunk chosen by measurement, benchmarks/bench_store_bytes.py),
+    #: "blosc-zstd" (Blosc byte-shuffles every array alike, Blosc's own blocks, then zstd: the
+    #: stores written before per-array codecs) or "zstd" (plain zstd, for readers without Blosc);
+    #: all zarr v3 core codecs, and the arrays' values are the same with any of them
+    codec: typing.Literal["blosc-zstd-per-array", "blosc-zstd", "zstd"] = "blosc-zstd-per-array"
+    #: compression level of every array (1 fastest; 9 smallest with Blosc, 22 with plain zstd)
     compression_level: int = 3
     #: also store the first-hit normals (N, 3, H, W) float32, camera frame (SPEC §4.6)
     normals: bool = False
+    #: the views whose ground-truth meshes (SPEC §5, what only `evaluate` reads) the store keeps:
+    #: "none" (evaluate makes them from the houses the store records for the views it scores, and
+    #: caches them beside the store) or "all"
+    gt_mesh: typing.Literal["all", "none"] = "none"
 
     def __post_init__(self):
         if self.views_per_shard < 1:
             raise ValueError(f"views_per_shard must be at least 1, got {self.views_per_shard}")
-        top = 9 if self.codec == "blosc-zstd" else 22
+        top = 22 if self.codec == "zstd" else 9
         if not 1 <= self.compression_level <= top:
             raise ValueError(f"compression_level must be in 1..{top} for codec {self.codec}, "
                              f"got {self.compression_level}")
@@ -140,6 +153,9 @@ class DatasetConfig:
             raise ValueError(f"views_per_house must be at least 1, got {self.views_per_house}")
         if (self.sampler.width, self.sampler.height) != (self.width, self.height):
             object.__setattr__(self, "sampler", replace(self.sampler, width=self.width, height=self.height))
+        with_mesh = self.store.gt_mesh == "all"
+        if self.view.with_mesh != with_mesh:  # a view's mesh is computed when the store keeps it
+            object.__setattr__(self, "view", replace(self.view, with_mesh=with_mesh))
 
     def to_dict(self) -> dict:
         """The resolved config as JSON-ready data (what the store saves)."""
@@ -156,22 +172,35 @@ class DatasetConfig:
 
 
 def _retire(data: dict, what: str, *, drop: bool) -> dict:
-    """``data`` without its :data:`RETIRED` keys (``drop``), or a SceneforgeError naming the first."""
+    """``data`` without its :data:`RETIRED` keys (``drop``; the value of a :data:`CARRIED`
+    one moves to its new key), or a SceneforgeError naming the first."""
     out = dict(data)
     for dotted, instead in RETIRED.items():
         *parents, key = dotted.split(".")
-        node, path = out, []
-        for parent in parents:
-            if not isinstance(node.get(parent), dict):
-                break
-            node[parent] = dict(node[parent])
-            node, path = node[parent], [*path, parent]
-        else:
-            if key in node:
-                if not drop:
-                    raise SceneforgeError(f"{what}: '{dotted}' was removed: {instead}")
-                del node[key]
+        node = _node(out, parents)
+        if node is not None and key in node:
+            if not drop:
+                raise SceneforgeError(f"{what}: '{dotted}' was removed: {instead}")
+            value = node.pop(key)
+            if dotted in CARRIED:
+                new, convert = CARRIED[dotted]
+                *new_parents, new_key = new.split(".")
+                _node(out, new_parents, create=True)[new_key] = convert(value)
     return out
+
+
+def _node(data: dict, parents: list[str], create: bool = False) -> dict | None:
+    """The dict at ``parents`` in ``data``, each level copied (so ``data``'s caller keeps its
+    own); None when a level is missing (created empty with ``create``)."""
+    node = data
+    for parent in parents:
+        if not isinstance(node.get(parent), dict):
+            if not create:
+                return None
+            node[parent] = {}
+        node[parent] = dict(node[parent])
+        node = node[parent]
+    return node
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> DatasetConfig:

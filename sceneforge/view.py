@@ -28,7 +28,8 @@ class ViewConfig:
     overhead: OverheadConfig = field(default_factory=OverheadConfig)
     #: the ground-truth mesh: objects clipped to the frustum, the envelope from D5
     mesh: ViewMeshConfig = field(default_factory=ViewMeshConfig)
-    #: compute the ground-truth mesh (only the evaluation needs it)
+    #: compute the ground-truth mesh (only the evaluation needs it); a render config sets it
+    #: from ``store.gt_mesh``: a view's mesh is computed when the store keeps it
     with_mesh: bool = True
 
 

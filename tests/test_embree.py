@@ -143,7 +143,8 @@ def _render_with(engine: str, source, out: Path, monkeypatch) -> dict[str, str]:
         used.add(tracer.backend.name)
         return tracer
 
-    overrides = {"rgb": {"enabled": False}}  # RGB does not read the ray tracer
+    # RGB does not read the ray tracer; the ground-truth meshes do
+    overrides = {"rgb": {"enabled": False}, "store": {"gt_mesh": "all"}}
     if source != "bundled:toy":  # the breakfast room's windows: let more of a view escape
         overrides |= {"views_per_house": 2, "sampler": {"max_escape_fraction": 0.5}}
     with monkeypatch.context() as m:

@@ -337,7 +337,7 @@ def test_houses_inspect_and_the_store_provenance_show_the_counts(real_root, real
     cams.parent.mkdir(parents=True)
     write_pbrs_cameras(cams, [look_at_camera((2.0, 1.2, 1.9), (1.0, -0.05, 0.03), width=16, height=12)])
     config = load_config(None, {"width": 16, "height": 12, "cameras": str(tmp_path / "cams"),
-                                "rgb": {"enabled": False}, "view": {"with_mesh": False, "overhead": {"resolution": 8}}})
+                                "rgb": {"enabled": False}, "view": {"overhead": {"resolution": 8}}})
     summary = render_dataset(str(real_root), str(tmp_path / "out.zarr"), config)
     assert summary.failed_houses == ()
     [record] = open_store(str(tmp_path / "out.zarr")).attrs["houses"]

@@ -26,8 +26,9 @@ from sceneforge.pipeline import executors, render_dataset
 from sceneforge.store import array_digests, open_store, validate_store
 
 #: tiny views, four per toy house, two per shard (a house's views span shards): 12 views in 6 shards
+#: with the ground-truth meshes, whose parts the workers stage and the run concatenates
 TINY = {"width": 32, "height": 24, "views_per_house": 4, "view": {"overhead": {"resolution": 16}},
-        "store": {"views_per_shard": 2}}
+        "store": {"views_per_shard": 2, "gt_mesh": "all"}}
 COMMANDS = {"render": "render:render", "validate": "render:validate", "show": "render:show",
             "export": "render:export"}
 
@@ -409,7 +410,7 @@ def test_camera_files_are_used_in_order_with_their_line_numbers(small_house, tmp
     path.write_text("\n".join([lines[0], "", "# a comment", lines[1]]) + "\n")
     out = tmp_path / "out.zarr"
     config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False},
-                                "view": {"with_mesh": False}})
+                                "store": {**TINY["store"], "gt_mesh": "none"}})
     summary = render_dataset(str(tmp_path / "houses"), str(out), config)
     assert summary.failed_houses == ()
     assert validate_store(str(out)) == []
@@ -421,7 +422,7 @@ def test_camera_files_are_used_in_order_with_their_line_numbers(small_house, tmp
     assert store.attrs["houses"][0]["cameras"] == {"source": "file", "file": str(path), "requested": 2,
                                                    "accepted": 2}
     assert "rgb" not in store.view(0) and not store.has_mesh
-    with pytest.raises(SceneforgeError, match="no ground-truth meshes"):
+    with pytest.raises(SceneforgeError, match="keeps no ground-truth meshes"):
         store.mesh(0)
 
 
@@ -432,7 +433,8 @@ def test_missing_camera_file_fails_that_house(small_house, tmp_path):
     path = tmp_path / "cams" / "room" / "room_camera.txt"
     path.parent.mkdir(parents=True)
     write_pbrs_cameras(path, [look_at_camera((1.0, 1.5, 1.5), (-1.0, -0.3, -1.0), width=32, height=24)])
-    config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False}})
+    config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False},
+                                "store": {**TINY["store"], "gt_mesh": "none"}})
     summary = render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
     assert summary.failed_houses == ("other",) and summary.views == 1
     assert "no camera file" in summary.failures[0]["reason"]
@@ -444,7 +446,8 @@ def test_a_cameras_folder_with_no_camera_file_is_refused(small_house, tmp_path):
     small_house.id = "room"
     write_house(small_house, tmp_path / "houses" / "room")
     (tmp_path / "cams").mkdir()
-    config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False}})
+    config = load_config(None, {**TINY, "cameras": str(tmp_path / "cams"), "rgb": {"enabled": False},
+                                "store": {**TINY["store"], "gt_mesh": "none"}})
     with pytest.raises(SceneforgeError, match=r"no camera file for any of the 1 house \(expected .*room_camera"):
         render_dataset(str(tmp_path / "houses"), str(tmp_path / "out.zarr"), config)
     assert not (tmp_path / "out.zarr").exists()

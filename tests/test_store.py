@@ -31,7 +31,7 @@ from sceneforge.view import compute_view
 
 #: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
 SMALL = {"width": 32, "height": 24, "views_per_house": 2, "view": {"overhead": {"resolution": 16}},
-         "store": {"views_per_shard": 4, "normals": True}}
+         "store": {"views_per_shard": 4, "normals": True, "gt_mesh": "all"}}
 
 
 @pytest.fixture(autouse=True)
@@ -177,21 +177,39 @@ def test_a_house_gets_the_same_cameras_alone_or_among_others(store_path, tmp_pat
 
 
 
-def test_plain_zstd_stores_the_same_arrays_and_validates(store_path, tmp_path):
-    out = tmp_path / "zstd.zarr"
-    render_dataset(BUNDLED_TOY, str(out), load_config(None, {**SMALL, "store": {**SMALL["store"], "codec": "zstd"}}))
+@pytest.mark.parametrize("codec, inner", [("zstd", "zstd"), ("blosc-zstd", "blosc")])
+def test_every_codec_stores_the_same_arrays_and_validates(codec, inner, store_path, tmp_path):
+    """Plain zstd (readers without Blosc) and the old uniform Blosc store what the default
+    per-array Blosc stores."""
     import zarr
 
+    out = tmp_path / f"{codec}.zarr"
+    render_dataset(BUNDLED_TOY, str(out), load_config(None, {**SMALL, "store": {**SMALL["store"], "codec": codec}}))
     doc = describe(zarr.open_group(str(out), mode="r"))
-    assert doc["arrays"]["depth"]["codecs"] == ["sharding_indexed", "bytes", "zstd"]
-    assert doc["arrays"]["mesh/envelope/faces"]["codecs"][-1] == "zstd"
+    assert doc["arrays"]["depth"]["codecs"] == ["sharding_indexed", "bytes", inner]
+    assert doc["arrays"]["mesh/envelope/faces"]["codecs"][-1] == inner
     assert validate_store(str(out)) == []
-    plain, shuffled = array_digests(str(out)), array_digests(str(store_path))
-    assert plain.keys() == shuffled.keys() and plain == shuffled
+    other, default = array_digests(str(out)), array_digests(str(store_path))
+    assert other.keys() == default.keys() and other == default
+
+
+def test_the_default_codec_shuffles_each_array_as_the_layout_says_one_block_per_chunk(store_path):
+    import zarr
+
+    group = zarr.open_group(str(store_path), mode="r")
+    for name, chunk_bytes in (("depth", 5 * 24 * 32 * 4), ("instance", 2 * 24 * 32 * 4), ("rgb", 24 * 32 * 3),
+                              ("mesh/objects/faces", (1 << 16) * 3 * 4)):
+        blosc = group[name].metadata.codecs[-1]
+        blosc = blosc.codecs[-1] if hasattr(blosc, "codecs") else blosc  # inside the sharding codec
+        config = blosc.to_dict()["configuration"]
+        assert config["shuffle"] == layout()[name].shuffle and config["blocksize"] == chunk_bytes, name
+        assert config["cname"] == "zstd" and config["clevel"] == 3
+    assert layout()["depth"].shuffle == "shuffle" and layout()["instance"].shuffle == "noshuffle"
 
 
 @pytest.mark.parametrize("store, message", [
-    ({"compression_level": 10}, "compression_level must be in 1..9 for codec blosc-zstd, got 10"),
+    ({"compression_level": 10}, "compression_level must be in 1..9 for codec blosc-zstd-per-array, got 10"),
+    ({"codec": "blosc-zstd", "compression_level": 10}, "compression_level must be in 1..9 for codec blosc-zstd, got 10"),
     ({"codec": "zstd", "compression_level": 23}, "compression_level must be in 1..22 for codec zstd, got 23"),
 ])
 def test_compression_level_range_follows_the_codec(store, message):

@@ -32,7 +32,8 @@ from sceneforge.store import (  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: 7 views of 8 x 6 pixels, 4 x 4 overhead, 3 views per shard: shards of 3, 3 and 1 views
 N = 7
-SMALL = {"width": 8, "height": 6, "view": {"overhead": {"resolution": 4}}, "store": {"views_per_shard": 3}}
+SMALL = {"width": 8, "height": 6, "view": {"overhead": {"resolution": 4}},
+         "store": {"views_per_shard": 3, "gt_mesh": "all"}}
 
 
 def random_views(config, rng: np.random.Generator) -> list[dict[str, np.ndarray]]:
@@ -109,7 +110,7 @@ def test_shards_written_out_of_order_read_back_exactly(tmp_path):
 
 
 def test_a_store_is_incomplete_until_finalized(tmp_path):
-    config = load_config(None, {**SMALL, "view": {**SMALL["view"], "with_mesh": False}})
+    config = load_config(None, {**SMALL, "store": {**SMALL["store"], "gt_mesh": "none"}})
     url = str(tmp_path / "s.zarr")
     writer = StoreWriter(url)
     writer.create(config, "houses/", N)
@@ -122,7 +123,7 @@ def test_a_store_is_incomplete_until_finalized(tmp_path):
 
 
 def test_a_shard_written_again_is_replaced(tmp_path):
-    config = load_config(None, {**SMALL, "view": {**SMALL["view"], "with_mesh": False}})
+    config = load_config(None, {**SMALL, "store": {**SMALL["store"], "gt_mesh": "none"}})
     first, second = (random_views(config, np.random.default_rng(seed)) for seed in (2, 3))
     writer = StoreWriter(str(tmp_path / "s.zarr"))
     writer.create(config, "houses/", N)

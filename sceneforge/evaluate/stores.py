@@ -2,6 +2,9 @@
 
 A store here is anything :func:`sceneforge.store.open_store` returns (``len``, ``names``,
 ``array``, ``view(i)``, ``mesh(i)``); this module reads views from it and never opens one.
+The ground-truth meshes come from ``meshes`` where given (anything with ``mesh(i)``, e.g.
+:class:`sceneforge.pipeline.gt_mesh.GroundTruthMeshes`, which makes them from the houses
+of a store that keeps none), else from the truth store itself.
 """
 
 from __future__ import annotations
@@ -83,20 +86,26 @@ def check_matching(pred, gt, indices: Collection[int]) -> None:
         matching_view(pred, gt, int(rows[np.flatnonzero(far)[0]]))
 
 
-def coverage_views(store, limit: int | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+def coverage_views(store, limit: int | None = None,
+                   meshes=None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
     """``(index, view, ground-truth mesh)`` of every view of ``store`` to score, read lazily
-    (what :func:`~sceneforge.evaluate.evaluate_views` takes)."""
+    (what :func:`~sceneforge.evaluate.evaluate_views` takes); the meshes from ``meshes``
+    (default: ``store``)."""
+    meshes = store if meshes is None else meshes
     for i in views_to_score(store, limit):
-        yield i, EvalView.from_arrays(store.view(i)), GroundTruthMesh.from_arrays(store.mesh(i))
+        yield i, EvalView.from_arrays(store.view(i)), GroundTruthMesh.from_arrays(meshes.mesh(i))
 
 
 def prediction_views(pred, gt, limit: int | None = None, houses: Collection[str] | None = None,
-                     indices: Collection[int] | None = None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
+                     indices: Collection[int] | None = None,
+                     meshes=None) -> Iterator[tuple[int, EvalView, GroundTruthMesh]]:
     """``(index, predicted view, ground-truth mesh)``: the layers and cameras of ``pred``
-    against the meshes of ``gt``, view ``i`` of one checked to be view ``i`` of the other;
-    the views of ``houses`` (None: all), or exactly ``indices`` when given."""
+    against the meshes of ``gt`` (from ``meshes``, default ``gt``), view ``i`` of one checked
+    to be view ``i`` of the other; the views of ``houses`` (None: all), or exactly
+    ``indices`` when given."""
+    meshes = gt if meshes is None else meshes
     for i in (views_to_score(pred, limit, houses) if indices is None else indices):
-        yield i, EvalView.from_arrays(matching_view(pred, gt, i)), GroundTruthMesh.from_arrays(gt.mesh(i))
+        yield i, EvalView.from_arrays(matching_view(pred, gt, i)), GroundTruthMesh.from_arrays(meshes.mesh(i))
 
 
 @dataclass(frozen=True)
@@ -133,17 +142,19 @@ class VoxelReport:
 
 
 def score_store_voxels(layers, truth=None, config: VoxelConfig | None = None, limit: int | None = None,
-                       on_view: Callable[[ViewVoxelScore], None] | None = None) -> VoxelReport:
+                       on_view: Callable[[ViewVoxelScore], None] | None = None, meshes=None) -> VoxelReport:
     """Voxel IoU of the layers of every view of ``layers`` against the solid object mesh of
-    the same view of ``truth`` (default: ``layers`` itself, i.e. the ground-truth layers).
+    the same view of ``truth`` (default: ``layers`` itself, i.e. the ground-truth layers),
+    from ``meshes`` (default: the truth store).
 
     on_view : called with each view's score as soon as it is known
     """
     config = config or VoxelConfig()
+    meshes = (layers if truth is None else truth) if meshes is None else meshes
     views = []
     for i in views_to_score(layers, limit):
         view = layers.view(i) if truth is None else matching_view(layers, truth, i)
-        mesh = (layers if truth is None else truth).mesh(i)
+        mesh = meshes.mesh(i)
         score = ViewVoxelScore(i, str(view["house_id"]), int(view["camera_id"]),
                                score_voxels(view["depth"], view["K"], view["cam_to_world"],
                                             GroundTruthMesh.from_arrays(mesh).objects, config))

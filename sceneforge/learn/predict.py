@@ -244,8 +244,8 @@ def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device
 
 def _prediction_config(config: "DatasetConfig") -> "DatasetConfig":
     """The source store's render config, less what no net predicts: RGB, normals, meshes."""
-    return replace(config, rgb=replace(config.rgb, enabled=False), view=replace(config.view, with_mesh=False),
-                   store=replace(config.store, normals=False))
+    return replace(config, rgb=replace(config.rgb, enabled=False),
+                   store=replace(config.store, normals=False, gt_mesh="none"))
 
 
 class _Shards:

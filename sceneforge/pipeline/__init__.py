@@ -10,9 +10,9 @@ A run goes through four steps, each resumable:
    The per-view arrays are created with that many views.
 3. **Render shards** (parallel, one task per shard): a task computes the views of one shard
    (ground truth and RGB) and writes that shard of every per-view array, so no two tasks
-   ever write the same file. Its ground-truth meshes go to a staged part; a marker listing
-   the SHA-256 of every file it wrote is written last, atomically.
-4. **Finalize** (main process, single writer): the mesh parts are concatenated in view
+   ever write the same file. Its ground-truth meshes (with ``store.gt_mesh: all``) go to a
+   staged part; a marker listing the SHA-256 of every file it wrote is written last, atomically.
+4. **Finalize** (main process, single writer): the mesh parts, if any, are concatenated in view
    order into the ragged mesh arrays, provenance and the failure log are written to the
    group attributes with ``complete: true``, and the staging folder is removed.
 
@@ -36,7 +36,8 @@ One module per step: :mod:`.plan` (1), :mod:`.assign` (2), :mod:`.shards` (3),
 :mod:`.executors` runs the tasks, :mod:`.worker` is what a worker process keeps between them.
 The store itself is written through :class:`~sceneforge.store.StoreWriter`. :mod:`.explain`
 redoes a run's steps for one house up to the overhead camera, to show how it was chosen
-(``sceneforge overhead-camera``).
+(``sceneforge overhead-camera``); :mod:`.gt_mesh` makes the ground-truth meshes of a store's
+views from its houses where the store keeps none (``store.gt_mesh: none``, the default).
 """
 
 from __future__ import annotations

@@ -7,10 +7,11 @@ validator cannot disagree.
 
 - **Per-view arrays** have the view index first, one view per chunk, and
   ``config.store.views_per_shard`` views per shard file (zarr's sharding codec), each chunk
-  compressed (Blosc + zstd by default). ``depth (N, 5, H, W) float32`` holds D1..D5 with NaN = no surface.
-- **Ground-truth meshes** (objects and envelope apart) are ragged: the vertices, faces and
-  face instances of all views concatenated in view order, with ``vertex_offsets`` and
-  ``face_offsets (N + 1,)``; faces index the view's own vertex rows.
+  compressed (Blosc + zstd by default, each array's own shuffle, one Blosc block per chunk).
+  ``depth (N, 5, H, W) float32`` holds D1..D5 with NaN = no surface.
+- **Ground-truth meshes** (objects and envelope apart; only with ``store.gt_mesh: all``) are
+  ragged: the vertices, faces and face instances of all views concatenated in view order,
+  with ``vertex_offsets`` and ``face_offsets (N + 1,)``; faces index the view's own vertex rows.
 - **Group attributes** hold the schema and package versions, the resolved config, the seed,
   the conventions, the NYU40 table, per-house provenance and the failure log.
 

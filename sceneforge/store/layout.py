@@ -43,10 +43,14 @@ class ArraySpec:
     dtype       : numpy dtype name, or ``string`` for variable-length UTF-8
     fill        : value of a view that was not computed (per-view arrays)
     per_view    : the first axis is the view index (one view per chunk, sharded)
-    optional    : the config flag that switches the array on, or None when always present
+    optional    : the config field that switches the array on (``config.store.normals``), or
+                  ``field=value`` when it has that value (``config.store.gt_mesh=all``); None
+                  when always present
     description : what it holds
     source      : per-view arrays: where a written view's values come from, an attribute
                   path on :func:`view_arrays`' arguments (``gt.layers.depth``, ``house_id``)
+    shuffle     : Blosc's shuffle for the array under the ``blosc-zstd-per-array`` codec:
+                  ``shuffle`` (bytes), ``bitshuffle`` or ``noshuffle``, chosen by measurement
     """
 
     name: str
@@ -57,6 +61,7 @@ class ArraySpec:
     optional: str | None
     description: str
     source: str | None = None
+    shuffle: str = "shuffle"
 
     def shape(self, sizes: dict[str, int]) -> tuple[int, ...]:
         """The concrete shape for ``sizes`` (``{"N": .., "H": .., ...}``)."""
@@ -92,16 +97,18 @@ def layout() -> dict[str, ArraySpec]:
             optional=p.get("x-optional"),
             description=p["description"],
             source=p.get("x-source"),
+            shuffle=p.get("x-shuffle", "shuffle"),
         )
         for name, p in props.items()
     }
 
 
-def _flag(config: "DatasetConfig", path: str) -> bool:
+def _flag(config: "DatasetConfig", optional: str) -> bool:
+    path, _, wanted = optional.partition("=")
     value = config
     for part in path.split(".")[1:]:
         value = getattr(value, part)
-    return bool(value)
+    return value == wanted if wanted else bool(value)
 
 
 def array_specs(config: "DatasetConfig", per_view: bool | None = None) -> list[ArraySpec]:
@@ -138,8 +145,8 @@ def base_attrs(config: "DatasetConfig", houses_source: str, n_views: int) -> dic
         "config": config.to_dict(),
         "conventions": conventions_attrs(),
         "nyu40": nyu40_table(),
-        "ground_truth_mesh": (mesh_provenance(config.view.mesh, config.width, config.height)
-                              if config.view.with_mesh else None),
+        # the rules of the views' ground-truth meshes, whether the store keeps them or not
+        "ground_truth_mesh": mesh_provenance(config.view.mesh, config.width, config.height),
         "houses": [],
         "failures": [],
     }

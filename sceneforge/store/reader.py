@@ -86,7 +86,8 @@ class SceneStore:
         """View ``i``'s ground-truth meshes: ``{"objects": (vertices (v, 3) float32,
         faces (f, 3) int32), "envelope": (...)}``, faces indexing those vertices."""
         if not self.has_mesh:
-            raise SceneforgeError("this store has no ground-truth meshes (config view.with_mesh was false)")
+            raise SceneforgeError("this store keeps no ground-truth meshes (config store.gt_mesh none): "
+                                  "sceneforge.ground_truth_meshes(path).mesh(i) makes them from its houses")
         i = self._index(i)
         out = {}
         for kind in MESH_KINDS:

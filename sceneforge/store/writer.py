@@ -19,6 +19,7 @@ from .layout import (
     MESH_CHUNK_ROWS,
     MESH_KINDS,
     MESH_SHARD_CHUNKS,
+    ArraySpec,
     array_specs,
     base_attrs,
     layout,
@@ -32,15 +33,28 @@ if TYPE_CHECKING:
     from ..config import DatasetConfig
 
 
-def _compressor(config: "DatasetConfig"):
-    """The configured compressor. Blosc shuffles by the array's item size (zarr sets it from
-    the dtype), so single-byte arrays (RGB, masks) are compressed as plain zstd would."""
+def array_compressor(config: "DatasetConfig", spec: ArraySpec, chunk_shape: tuple[int, ...]):
+    """The compressor of array ``spec`` with chunks of ``chunk_shape``, by ``config.store.codec``:
+
+    - ``blosc-zstd-per-array``: Blosc + zstd with the array's own shuffle (the layout's
+      ``x-shuffle``) and one Blosc block per chunk (Blosc's default splits a view into blocks
+      of a few hundred kB, each compressed alone: 16 % more bytes for a toy view's depth);
+      both chosen by measurement, ``benchmarks/bench_store_bytes.py``;
+    - ``blosc-zstd``: Blosc + zstd, every array byte-shuffled, Blosc's default blocks (the
+      stores written before per-array codecs);
+    - ``zstd``: plain zstd, for readers without Blosc.
+
+    Blosc shuffles by the array's item size (zarr sets it from the dtype).
+    """
     from zarr.codecs import BloscCodec, ZstdCodec
 
     level = config.store.compression_level
     if config.store.codec == "zstd":
         return ZstdCodec(level=level)
-    return BloscCodec(cname="zstd", clevel=level, shuffle="shuffle")
+    if config.store.codec == "blosc-zstd":
+        return BloscCodec(cname="zstd", clevel=level, shuffle="shuffle")
+    block = int(np.prod(chunk_shape)) * spec.numpy_dtype.itemsize if spec.dtype != "string" else 0
+    return BloscCodec(cname="zstd", clevel=level, shuffle=spec.shuffle, blocksize=block)
 
 
 def create_arrays(group: "zarr.Group", config: "DatasetConfig", n_views: int) -> None:
@@ -49,10 +63,10 @@ def create_arrays(group: "zarr.Group", config: "DatasetConfig", n_views: int) ->
     per_shard = config.store.views_per_shard
     for spec in array_specs(config, per_view=True):
         shape = spec.shape(sizes)
+        chunks = (1, *shape[1:])
         group.create_array(
-            spec.name, shape=shape, dtype=spec.numpy_dtype,
-            chunks=(1, *shape[1:]), shards=(per_shard, *shape[1:]),
-            compressors=_compressor(config), fill_value=spec.fill_value, overwrite=True,
+            spec.name, shape=shape, dtype=spec.numpy_dtype, chunks=chunks, shards=(per_shard, *shape[1:]),
+            compressors=array_compressor(config, spec, chunks), fill_value=spec.fill_value, overwrite=True,
         )
 
 
@@ -113,15 +127,17 @@ def write_meshes(group: "zarr.Group", config: "DatasetConfig", counts: np.ndarra
         np.cumsum(counts[:, k], axis=0, out=offsets[1:])
         rows = {"V": int(offsets[-1, 0]), "F": int(offsets[-1, 1])}
         for j, name in enumerate(("vertex_offsets", "face_offsets")):
-            group.create_array(f"mesh/{kind}/{name}", data=offsets[:, j].astype(specs[f"mesh/{kind}/{name}"].dtype),
-                               chunks=(MESH_CHUNK_ROWS,), compressors=_compressor(config), overwrite=True)
+            spec = specs[f"mesh/{kind}/{name}"]
+            group.create_array(spec.name, data=offsets[:, j].astype(spec.dtype), chunks=(MESH_CHUNK_ROWS,),
+                               compressors=array_compressor(config, spec, (MESH_CHUNK_ROWS,)), overwrite=True)
         for name in ("vertices", "faces", "instance"):
             spec = specs[f"mesh/{kind}/{name}"]
             shape = spec.shape(rows)
+            chunks = (MESH_CHUNK_ROWS, *shape[1:])
             array = group.create_array(
-                spec.name, shape=shape, dtype=spec.dtype, chunks=(MESH_CHUNK_ROWS, *shape[1:]),
-                shards=(MESH_CHUNK_ROWS * MESH_SHARD_CHUNKS, *shape[1:]), compressors=_compressor(config),
-                overwrite=True)
+                spec.name, shape=shape, dtype=spec.dtype, chunks=chunks,
+                shards=(MESH_CHUNK_ROWS * MESH_SHARD_CHUNKS, *shape[1:]),
+                compressors=array_compressor(config, spec, chunks), overwrite=True)
             writers[f"{kind}_{name}"] = RowWriter(array)
     for part in parts:
         for key, writer in writers.items():
