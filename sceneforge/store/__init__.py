@@ -21,6 +21,9 @@ This package is the only one that touches zarr, one module per concern:
 - :mod:`.writer`: :class:`StoreWriter` writes a store (``sceneforge render`` and
   ``sceneforge predict`` both go through it) and records a manifest of every shard file's
   SHA-256 when it completes it;
+- :mod:`.location`: where a store lives (a local folder, an S3 bucket, any fsspec
+  URL), what that kind of place guarantees (atomic files, the lock's create-only and
+  replace-if-unchanged writes) and how its errors read (one line each);
 - :mod:`.lock`: :class:`StoreLock`, which the writer holds for the run;
 - :mod:`.reader`: :func:`open_store` reads one with numpy only (no PyTorch);
   :func:`array_digests` fingerprints its contents;

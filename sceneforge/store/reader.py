@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import MissingDependencyError, SceneforgeError
 from .layout import MESH_KINDS, layout
+from .location import errors, open_location, options_for
 
 if TYPE_CHECKING:
     import zarr
@@ -26,9 +27,10 @@ def open_group(path: str, mode: str = "r", storage_options: dict | None = None) 
     except ImportError as e:
         raise MissingDependencyError("zarr", "the dataset store", "pip install sceneforge[store]") from e
     try:
-        return zarr.open_group(str(path), mode=mode, storage_options=storage_options)
+        with errors(str(path)):  # an unreachable endpoint, no bucket, access denied: one line each
+            return zarr.open_group(str(path), mode=mode, storage_options=options_for(str(path), storage_options) or None)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError, NotADirectoryError):
-        raise SceneforgeError(f"{path}: no zarr store there") from None
+        raise open_location(str(path), storage_options).missing() from None
 
 
 class SceneStore:
