@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import os
 import uuid
+from pathlib import Path
 from typing import Iterator
 
 from ..errors import MissingDependencyError, SceneforgeError
@@ -38,6 +39,11 @@ def _protocol(url: str) -> str:
     from fsspec.core import split_protocol
 
     return split_protocol(str(url))[0] or "file"
+
+
+def is_url(path: str) -> bool:
+    """``path`` names a place on a filesystem other than the local one's paths (``s3://...``)."""
+    return "://" in str(path)
 
 
 class Location:
@@ -268,3 +274,35 @@ def errors(url: str) -> Iterator[None]:
             raise
         raise line from None
 
+
+# ------------------------------------------------------------- files beside a store
+
+def resolve(path: str) -> str:
+    """A local path made absolute, a URL as it is: the same file from any working folder."""
+    return str(path) if is_url(path) else str(Path(path).resolve())
+
+
+def beside(path: str, name: str) -> str:
+    """The file ``name`` in the folder holding ``path`` (a local path or a URL), resolved
+    (e.g. the house split beside the first store: ``s3://bucket/split.json``)."""
+    if is_url(path):
+        return f"{str(path).rstrip('/').rsplit('/', 1)[0]}/{name}"
+    return str(Path(path).resolve().parent / name)
+
+
+def read_file(path: str, storage_options: dict | None = None) -> bytes | None:
+    """The bytes of the file at ``path`` (a local path or a URL), or None when there is none."""
+    place = open_location(path, storage_options)
+    with errors(path):
+        try:
+            return place.fs.cat_file(place.root)
+        except FileNotFoundError:
+            return None
+
+
+def write_file(path: str, data: bytes, storage_options: dict | None = None) -> None:
+    """Write ``data`` to the file at ``path`` (a local path or a URL); readers see all of
+    it or nothing (:meth:`Location.put`)."""
+    place = open_location(path, storage_options)
+    with errors(path):
+        place.put(place.root, data)
