@@ -51,6 +51,7 @@ from .layout import (
     sizes_of,
     view_arrays,
 )
+from .location import errors as location_errors
 from .lock import StoreLock
 from .reader import SceneStore, array_digests, open_store, reads_survive_fork
 from .validate import StoreCheck, check_store, describe, validate_store
@@ -58,5 +59,5 @@ from .writer import StoreWriter, mesh_part, shard_key
 
 __all__ = ["MANIFEST", "MESH_KINDS", "SCHEMA_VERSION", "ArraySpec", "SceneStore", "StoreCheck", "StoreLock",
            "StoreWriter", "array_digests", "array_specs", "base_attrs", "blank_view", "check_store",
-           "conventions_attrs", "describe", "export_exr", "layout", "mesh_part", "open_store",
+           "conventions_attrs", "describe", "export_exr", "layout", "location_errors", "mesh_part", "open_store",
            "reads_survive_fork", "shard_key", "sizes_of", "validate_store", "view_arrays"]
