@@ -26,11 +26,13 @@ def open_group(path: str, mode: str = "r", storage_options: dict | None = None) 
         import zarr
     except ImportError as e:
         raise MissingDependencyError("zarr", "the dataset store", "pip install sceneforge[store]") from e
+    place = open_location(str(path), storage_options)  # a filesystem package missing: one line
     try:
-        with errors(str(path)):  # an unreachable endpoint, no bucket, access denied: one line each
-            return zarr.open_group(str(path), mode=mode, storage_options=options_for(str(path), storage_options) or None)
+        with errors(place.url):  # an unreachable endpoint, no bucket, access denied: one line each
+            options = None if place.local else options_for(place.url, storage_options)
+            return zarr.open_group(place.url, mode=mode, storage_options=options)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError, NotADirectoryError):
-        raise open_location(str(path), storage_options).missing() from None
+        raise place.missing() from None
 
 
 class SceneStore:
