@@ -129,6 +129,22 @@ def test_the_lock_is_created_only_where_none_is_and_replaced_only_while_unchange
     assert place.read(path) is None and not place.replace(path, b"{}", etag)
 
 
+def test_a_conditional_write_in_conflict_has_lost(s3, monkeypatch):
+    """S3 answers 409 ConditionalRequestConflict to a conditional write racing another one
+    (moto never does): that writer did not get the lock, as with 412."""
+    from botocore.exceptions import ClientError
+    from s3fs.errors import translate_boto_error
+
+    place = open_location(f"s3://{BUCKET}/conflict.zarr")
+
+    def conflict(*args, **kwargs):
+        raise translate_boto_error(ClientError({"Error": {"Code": "ConditionalRequestConflict"}}, "PutObject"))
+
+    monkeypatch.setattr(place.fs, "pipe_file", conflict)
+    assert not place.create(f"{BUCKET}/conflict.zarr.lock", b"{}")
+    assert not place.replace(f"{BUCKET}/conflict.zarr.lock", b"{}", '"etag"')
+
+
 def test_a_dead_runs_lock_is_taken_over_and_another_hosts_is_not(s3, caplog):
     url = f"s3://{BUCKET}/stale.zarr"
     dead = subprocess.Popen([sys.executable, "-c", "pass"])

@@ -160,6 +160,14 @@ class S3Bucket(Location):
     # Halves the requests of a shard written and hashed.
     defaults = {"max_concurrency": 1}
 
+    def create(self, path: str, data: bytes) -> bool:
+        try:
+            return super().create(path, data)  # s3fs: PUT with If-None-Match: *
+        except OSError as e:
+            if _s3_code(e) in _LOST:
+                return False
+            raise
+
     def read(self, path: str) -> tuple[bytes, object] | None:
         # s3fs reads with If-Match on the ETag its HEAD saw: the bytes are that version's
         for _ in range(3):
@@ -180,7 +188,7 @@ class S3Bucket(Location):
         except FileNotFoundError:  # removed meanwhile: the caller creates it
             return False
         except OSError as e:
-            if _s3_code(e) == "PreconditionFailed":
+            if _s3_code(e) in _LOST:
                 return False
             raise
         return True
@@ -215,6 +223,12 @@ class S3Bucket(Location):
             return SceneforgeError(f"{url}: access denied ({reason}); check the credentials (AWS_ACCESS_KEY_ID, "
                                    "AWS_SECRET_ACCESS_KEY, AWS_PROFILE) and the bucket's permissions")
         return None
+
+
+#: the S3 error codes of a conditional write that lost: the object is not the version the
+#: write was conditional on, or another conditional write to it is under way (409: S3 then
+#: lets one of them through, so this one has lost as surely)
+_LOST = ("PreconditionFailed", "ConditionalRequestConflict")
 
 
 def _s3_code(error: BaseException) -> str | None:
