@@ -257,6 +257,17 @@ def _render_in_a_child(url: str, env: dict) -> subprocess.CompletedProcess:
     return done
 
 
+def test_the_endpoint_and_credentials_may_come_from_fsspecs_configuration(s3):
+    """FSSPEC_S3_* (or ~/.config/fsspec/s3.json) instead of AWS_*: the writer and zarr both
+    take them."""
+    env = {name: "" for name in ("AWS_ENDPOINT_URL", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY")}
+    env.update(FSSPEC_S3_ENDPOINT_URL=os.environ["AWS_ENDPOINT_URL"], FSSPEC_S3_KEY="testing",
+               FSSPEC_S3_SECRET="testing")
+    done = _render_in_a_child(f"s3://{BUCKET}/configured.zarr", env)
+    assert done.returncode == 0, done.stderr
+    assert f"s3://{BUCKET}/configured.zarr: 3 views of 3 houses" in done.stderr
+
+
 def test_an_unreachable_endpoint_is_one_red_line(s3):
     port = free_port()  # nothing listens there
     # one attempt (the standard variable): botocore would retry for ~10 s
