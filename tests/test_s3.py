@@ -51,9 +51,13 @@ def s3():
             mp.delenv(name, raising=False)
         for name, value in server.env.items():
             mp.setenv(name, value)
+        # fsspec caches filesystems by their options, not by the environment they read: none
+        # made for another server (this module's fixture again, after other modules' tests) serves
+        s3fs.S3FileSystem.clear_instance_cache()
         fs = s3fs.S3FileSystem(skip_instance_cache=True)
         fs.mkdir(BUCKET)
         yield fs
+    s3fs.S3FileSystem.clear_instance_cache()
 
 
 @pytest.fixture(scope="module")
