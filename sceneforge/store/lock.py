@@ -24,8 +24,8 @@ class StoreLock:
 
     It is created only where none is, and a stale one is replaced only while it is still
     the one read, both by the store's place (:class:`~.location.Location`): on local files
-    and on S3 (conditional writes) two runs on two machines cannot both hold it, nor both
-    take over the same stale one. A lock whose process is gone (same host, and no process
+    (a hard link) and on S3 (conditional PUTs, so also for runs on two machines) two runs
+    cannot both hold it, nor both take over the same stale one. A lock whose process is gone (same host, and no process
     with that pid and start time: killed with SIGKILL, or the machine rebooted) is taken
     over with a warning on the ``sceneforge.store.lock`` logger; one held on another host
     is taken as alive (the message says which file to delete if that run is gone).
