@@ -17,7 +17,6 @@ import types
 import typing
 from collections.abc import Callable, Sequence
 from dataclasses import MISSING, dataclass
-from pathlib import Path
 
 import click
 from click.core import ParameterSource
@@ -221,8 +220,11 @@ def _require(root: type, opt: ConfigOption, data: dict) -> None:
 
 
 def absolute_path(path: str) -> str:
-    """``path`` made absolute (a config saved with a store names its files from anywhere)."""
-    return str(Path(path).resolve())
+    """``path`` made absolute, a URL left as it is (a config saved with a store names its
+    files from anywhere)."""
+    from sceneforge.store.location import resolve
+
+    return resolve(path)
 
 
 #: the house-reading options of every command that reads houses (fields of ``houses``)

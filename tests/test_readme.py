@@ -11,6 +11,9 @@ or it is marked as not run. Marks are HTML comments on the lines right above the
     run only where PATH (relative to the repository root) exists, e.g. the breakfast room.
 ``<!-- compare: labels (REASON) -->``
     compare each output line only up to its first ``:`` (what a machine prints differently).
+``<!-- s3: BUCKET -->``
+    run against a local S3 API (moto's server, :func:`sceneforge.testing.s3.local_s3`)
+    holding the bucket BUCKET, with ``AWS_ENDPOINT_URL`` and credentials pointing at it.
 
 In a shown output, ``…`` stands for any text within a line and a line of ``…`` (or ``...``)
 alone for any lines; timings (``9.5 s``, ``46.5 ms``, ``2.3 views/s``) and progress bars are
@@ -19,6 +22,7 @@ not compared. The blocks of :data:`NOT_RUN_SECTIONS` are not run whatever their 
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import hashlib
 import os
@@ -28,6 +32,7 @@ import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -35,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 RUN_LANGUAGES = {"bash", "console", "sh", "python"}
 #: heading → why none of the section's blocks runs here (its owner marks them one by one)
-MARK = re.compile(r"^<!-- (not run|needs|compare): (.+?) -->$")
+MARK = re.compile(r"^<!-- (not run|needs|compare|s3): (.+?) -->$")
 TIMING = re.compile(r"\d+(?:\.\d+)?\s?(?:ms|s|min|views/s)(?![\w/])")
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 ANY_LINES = {"…", "..."}
@@ -135,9 +140,9 @@ def fresh_checkout(tmp: Path) -> Path:
     return clone
 
 
-def shell(command: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{cwd.parent / 'bin'}{os.pathsep}{os.environ['PATH']}", "COLUMNS": "100",
-           "NO_COLOR": "1"}
+def shell(command: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, **(env or {}), "PATH": f"{cwd.parent / 'bin'}{os.pathsep}{os.environ['PATH']}",
+           "COLUMNS": "100", "NO_COLOR": "1"}
     return subprocess.run(["bash", "-c", command], cwd=cwd, env=env, stdout=subprocess.PIPE,
                           stderr=subprocess.STDOUT, text=True, timeout=900)
 
@@ -158,12 +163,33 @@ def python_block(block: Block) -> str:
 
 def run_block(block: Block, cwd: Path) -> list[str]:
     """Run one block in ``cwd``: the problems found (failed commands, outputs that differ)."""
+    if "s3" in block.marks:
+        with local_bucket(block.marks["s3"]) as env:
+            return _run_block(block, cwd, env)
+    return _run_block(block, cwd)
+
+
+@contextlib.contextmanager
+def local_bucket(bucket: str) -> Iterator[dict[str, str]]:
+    """The environment of a client of a local S3 API holding the empty bucket ``bucket``."""
+    s3fs = pytest.importorskip("s3fs", reason="the s3 extra (s3fs) is not installed")
+    pytest.importorskip("moto.server", reason="the test extra (moto[server]) is not installed")
+    from sceneforge.testing.s3 import local_s3
+
+    with local_s3() as server:
+        env = server.env
+        s3fs.S3FileSystem(endpoint_url=server.endpoint, key=env["AWS_ACCESS_KEY_ID"],
+                          secret=env["AWS_SECRET_ACCESS_KEY"], skip_instance_cache=True).mkdir(bucket)
+        yield env
+
+
+def _run_block(block: Block, cwd: Path, env: dict[str, str] | None = None) -> list[str]:
     if block.language == "python":
-        done = shell(f"python - <<'README_PYTHON'\n{python_block(block)}README_PYTHON", cwd)
+        done = shell(f"python - <<'README_PYTHON'\n{python_block(block)}README_PYTHON", cwd, env)
         return [f"{block.where}: the python block failed:\n{done.stdout}"] if done.returncode else []
     problems = []
     for command, shown in block.commands():
-        done = shell(command, cwd)
+        done = shell(command, cwd, env)
         if done.returncode:
             problems.append(f"{block.where}: `{command}` exited {done.returncode}:\n{done.stdout}")
         elif block.language == "console" and (diff := mismatch(shown, done.stdout, block.marks.get("compare", ""))):
@@ -190,11 +216,13 @@ def test_every_block_is_run_or_marked_with_a_reason():
 def test_marks_decide_what_runs():
     text = ("# x\n<!-- not run: needs a GPU -->\n```bash\nsceneforge train a\n```\n"
             "<!-- needs: nowhere/x -->\n<!-- compare: labels (machine) -->\n```console\n$ sceneforge doctor\n```\n"
-            "## Input formats\n```bash\nsceneforge render c\n```\n")
+            "## Input formats\n```bash\nsceneforge render c\n```\n"
+            "<!-- s3: a-bucket -->\n```bash\nsceneforge validate s3://a-bucket/x.zarr\n```\n")
     found = blocks(ROOT / "README.md", text)
-    assert [b.runs for b in found] == [False, True, True]  # "needs" is decided where the walkthrough runs
+    assert [b.runs for b in found] == [False, True, True, True]  # "needs" is decided where the walkthrough runs
     assert found[0].marks == {"not run": "needs a GPU"}
     assert found[1].marks == {"needs": "nowhere/x", "compare": "labels (machine)"}
+    assert found[3].marks == {"s3": "a-bucket"}
 
 
 def test_shown_output_allows_elisions_and_timings_only():

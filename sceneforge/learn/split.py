@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneforgeError
+from ..store.location import beside, read_file, resolve, write_file
 from .config import SplitConfig
 
 #: the splits of the houses
@@ -50,9 +51,10 @@ def split_houses(house_ids: Sequence[str], config: SplitConfig | None = None) ->
             "train": sorted(order[n_val + n_test:])}
 
 
-def default_split_file(stores: Sequence[str]) -> Path:
-    """``split.json`` beside the first store (absolute)."""
-    return Path(stores[0]).resolve().parent / SPLIT_FILE
+def default_split_file(stores: Sequence[str]) -> str:
+    """``split.json`` beside the first store (absolute; on its filesystem: beside
+    ``s3://bucket/a.zarr`` it is ``s3://bucket/split.json``)."""
+    return beside(stores[0], SPLIT_FILE)
 
 
 @dataclass(frozen=True)
@@ -69,8 +71,9 @@ class HouseSplit:
     stores: tuple[str, ...]
 
     @property
-    def path(self) -> Path | None:
-        return None if self.config.file is None else Path(self.config.file)
+    def path(self) -> str | None:
+        """Where the split is saved: an absolute path or a URL."""
+        return self.config.file
 
     def of(self, split: str) -> frozenset[str] | None:
         """The houses of ``split`` (``all``: None, i.e. every house)."""
@@ -104,16 +107,18 @@ def draw_split(house_ids: Sequence[str], config: SplitConfig, stores: Sequence[s
 
 
 def read_split(path: str | Path) -> HouseSplit:
-    """The split saved in ``path``; :class:`SceneforgeError` when it is missing or not a split file."""
-    path = Path(path)
+    """The split saved in ``path`` (a local path or a URL); :class:`SceneforgeError` when it
+    is missing or not a split file."""
+    path = str(path)
     try:
-        data = json.loads(path.read_text())
-        config = SplitConfig(data["val_fraction"], data["test_fraction"], data["seed"], str(path.resolve()))
+        data = read_file(path)
+        if data is None:
+            raise SceneforgeError(f"no split file {path}: train a run on these stores first (it writes the "
+                                  "split), give --split-file, or use --split all")
+        data = json.loads(data)
+        config = SplitConfig(data["val_fraction"], data["test_fraction"], data["seed"], resolve(path))
         houses = {s: tuple(map(str, data[s])) for s in SPLITS}
         stores = tuple(map(str, data.get("stores", ())))
-    except FileNotFoundError:
-        raise SceneforgeError(f"no split file {path}: train a run on these stores first (it writes the split), "
-                              "give --split-file, or use --split all") from None
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise SceneforgeError(f"{path}: not a split file ({e})") from None
     return HouseSplit(houses, config, stores)
@@ -126,14 +131,11 @@ def fixed_split(house_ids: Sequence[str], stores: Sequence[str], config: SplitCo
     Raises :class:`SceneforgeError` when the saved split was drawn with other fractions or
     another seed than ``config`` asks for, or does not hold every one of the houses.
     """
-    path = Path(config.file) if config.file is not None else default_split_file(stores)
-    if not path.exists():
-        split = draw_split(house_ids, SplitConfig(config.val_fraction, config.test_fraction, config.seed,
-                                                  str(path.resolve())), stores)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(split.to_dict(), indent=1) + "\n")
-        tmp.replace(path)
+    path = resolve(config.file) if config.file is not None else default_split_file(stores)
+    if read_file(path) is None:
+        split = draw_split(house_ids, SplitConfig(config.val_fraction, config.test_fraction, config.seed, path),
+                           stores)
+        write_file(path, (json.dumps(split.to_dict(), indent=1) + "\n").encode())
         return split
     split = read_split(path)
     saved = split.config

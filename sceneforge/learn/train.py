@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from ..errors import MissingDependencyError, SceneforgeError
+from ..store.location import resolve
 from .cache import cached_datasets
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
 from .dataset import StoreDataset, ViewIndex, index_stores
@@ -125,8 +126,8 @@ def _check_same_split(config: TrainConfig, frozen: TrainConfig, run) -> None:
     """A stage on the stores of its frozen run must use that run's split file: another split
     would validate and test it on the frozen nets' training houses."""
     ours, theirs = config.split.file, frozen.split.file
-    shared = {str(Path(s).resolve()) for s in config.stores} & {str(Path(s).resolve()) for s in frozen.stores}
-    if ours and theirs and shared and Path(ours).resolve() != Path(theirs).resolve():
+    shared = {resolve(s) for s in config.stores} & {resolve(s) for s in frozen.stores}
+    if ours and theirs and shared and resolve(ours) != resolve(theirs):
         raise SceneforgeError(f"{run} was trained on the split of {theirs}, this run splits the same stores by "
                               f"{ours}: pass --split-file {theirs}")
 
@@ -189,10 +190,10 @@ def plot_loss_curve(run: str | Path) -> Path:
 def _absolute_runs(config: TrainConfig) -> TrainConfig:
     """The frozen runs and the split file as absolute paths: found again from any working
     directory (the split file's default, beside the first store, written out)."""
-    split_file = Path(config.split.file) if config.split.file is not None else default_split_file(config.stores)
+    split_file = config.split.file if config.split.file is not None else default_split_file(config.stores)
     return replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
                    seg_run=config.seg_run and str(Path(config.seg_run).resolve()),
-                   split=replace(config.split, file=str(split_file.resolve())))
+                   split=replace(config.split, file=resolve(split_file)))
 
 
 def _prepare_run(config: TrainConfig, run: Path, resume: bool, device: torch.device) -> TrainConfig:

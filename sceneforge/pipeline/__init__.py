@@ -48,7 +48,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Protocol
 
-from ..store import StoreWriter
+from ..store import StoreWriter, location_errors
 from .assign import Plan, ViewPlan
 from .executors import executor
 from .finalize import finalize_store
@@ -135,7 +135,7 @@ def render_dataset(
         check_camera_folder(config.cameras, [s.id for s in sources])
     writer = StoreWriter(out, storage_options)
     try:
-        with writer:
+        with writer, location_errors(writer.url):  # S3 gone mid-run: one line, as at the start
             prep = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite=overwrite,
                            update=update, retry_failed=retry_failed)
             if prep.state == "complete":

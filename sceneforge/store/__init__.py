@@ -22,6 +22,9 @@ This package is the only one that touches zarr, one module per concern:
 - :mod:`.writer`: :class:`StoreWriter` writes a store (``sceneforge render`` and
   ``sceneforge predict`` both go through it) and records a manifest of every shard file's
   SHA-256 when it completes it;
+- :mod:`.location`: where a store lives (a local folder, an S3 bucket, any fsspec
+  URL), what that kind of place guarantees (atomic files, the lock's create-only and
+  replace-if-unchanged writes) and how its errors read (one line each);
 - :mod:`.lock`: :class:`StoreLock`, which the writer holds for the run;
 - :mod:`.reader`: :func:`open_store` reads one with numpy only (no PyTorch);
   :func:`array_digests` fingerprints its contents;
@@ -49,6 +52,7 @@ from .layout import (
     sizes_of,
     view_arrays,
 )
+from .location import errors as location_errors
 from .lock import StoreLock
 from .reader import SceneStore, array_digests, open_store, reads_survive_fork
 from .validate import StoreCheck, check_store, describe, validate_store
@@ -56,5 +60,5 @@ from .writer import StoreWriter, mesh_part, shard_key
 
 __all__ = ["MANIFEST", "MESH_KINDS", "SCHEMA_VERSION", "ArraySpec", "SceneStore", "StoreCheck", "StoreLock",
            "StoreWriter", "array_digests", "array_specs", "base_attrs", "blank_view", "check_store",
-           "conventions_attrs", "describe", "export_exr", "layout", "mesh_part", "open_store",
+           "conventions_attrs", "describe", "export_exr", "layout", "location_errors", "mesh_part", "open_store",
            "reads_survive_fork", "shard_key", "sizes_of", "validate_store", "view_arrays"]

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
 import socket
 import sys
 import time
-import uuid
 from typing import TYPE_CHECKING
 
 from ..errors import StoreLockedError
@@ -24,16 +22,18 @@ class StoreLock:
     """The lock of a store: a file beside it (``OUT.zarr.lock``) naming the process that
     writes it (pid, host, process start time, command line).
 
-    A lock whose process is gone (same host, and no process with that pid and start time:
-    killed with SIGKILL, or the machine rebooted) is taken over with a warning on the
-    ``sceneforge.store.lock`` logger. On a local filesystem the lock file is created atomically
-    (a hard link that fails when the file exists); on other fsspec filesystems (object
-    stores) it is checked, then written, which leaves a short window for two runs started
-    at the same moment.
+    It is created only where none is, and a stale one is replaced only while it is still
+    the one read, both by the store's place (:class:`~.location.Location`): on local files
+    (a hard link) and on S3 (conditional PUTs, so also for runs on two machines) two runs
+    cannot both hold it, nor both take over the same stale one. A lock whose process is gone (same host, and no process
+    with that pid and start time: killed with SIGKILL, or the machine rebooted) is taken
+    over with a warning on the ``sceneforge.store.lock`` logger; one held on another host
+    is taken as alive (the message says which file to delete if that run is gone).
     """
 
     def __init__(self, writer: "StoreWriter"):
         self.writer = writer
+        self.location = writer.location
         self.path = f"{writer.root}.lock"
         self.me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _process_start(os.getpid()),
                    "since": time.strftime("%Y-%m-%d %H:%M:%S"),
@@ -43,72 +43,47 @@ class StoreLock:
         """Take the lock; raises :class:`StoreLockedError` while a live process holds it."""
         data = json.dumps(self.me).encode()
         for _ in range(5):
-            if self._create(data):
+            if self.location.create(self.path, data):
                 return
-            holder = self._read()
-            if holder is None:  # being written right now, or torn by a crash while written
+            found = self._read()
+            if found is not None and found[0] is None:  # being written right now, or torn by a crash
                 time.sleep(0.2)
-                holder = self._read()
+                found = self._read()
+            if found is None:  # released meanwhile
+                continue
+            holder, version = found
             if holder is not None and _alive(holder):
-                elsewhere = "" if holder.get("host") == self.me["host"] else f"; if that run is gone, delete {self.path}"
+                elsewhere = ("" if holder.get("host") == self.me["host"] else
+                             f"; if that run is gone, delete {self.location.url_of(self.path)}")
                 raise StoreLockedError(
                     f"{self.writer.url}: another run is writing this store ({_describe(holder)}); wait for it to "
                     f"end, or write elsewhere{elsewhere}")
-            if self._take_over(holder):
+            if self.location.replace(self.path, data, version):
                 log.warning("%s: took over the lock of a run that is no longer running (%s)", self.writer.url,
                             "a torn lock file" if holder is None else _describe(holder))
-        raise StoreLockedError(f"{self.writer.url}: cannot take the lock {self.path}: other runs keep taking it")
+                return
+        raise StoreLockedError(f"{self.writer.url}: cannot take the lock {self.location.url_of(self.path)}: other "
+                               "runs keep taking it")
 
     def release(self) -> None:
         """Remove the lock file, if it is still this process's."""
-        holder = self._read()
-        if holder is not None and holder.get("pid") == self.me["pid"] and holder.get("host") == self.me["host"]:
-            with contextlib.suppress(FileNotFoundError):
-                self.writer.fs.rm(self.path)
+        found = self._read()
+        holder = found and found[0]
+        if holder and holder.get("pid") == self.me["pid"] and holder.get("host") == self.me["host"]:
+            self.location.remove(self.path)
 
-    def _create(self, data: bytes) -> bool:
-        fs = self.writer.fs
-        fs.makedirs(self.path.rsplit("/", 1)[0] or "/", exist_ok=True)
-        if not self.writer.local:
-            if fs.exists(self.path):
-                return False
-            fs.pipe_file(self.path, data)
-            return True
-        tmp = f"{self.path}.{uuid.uuid4().hex}.partial"
-        with open(tmp, "wb") as f:
-            f.write(data)
-        try:
-            os.link(tmp, self.path)
-            return True
-        except FileExistsError:
-            return False
-        finally:
-            os.unlink(tmp)
-
-    def _read(self) -> dict | None:
-        try:
-            return json.loads(self.writer.fs.cat_file(self.path))
-        except (FileNotFoundError, ValueError):
+    def _read(self) -> tuple[dict | None, object] | None:
+        """The holder named by the lock file (None when it is not JSON) and the file's
+        version; None when there is no lock file."""
+        found = self.location.read(self.path)
+        if found is None:
             return None
-
-    def _take_over(self, stale: dict | None) -> bool:
-        """Remove the stale lock ``stale`` unless another process replaced it meanwhile;
-        True when it was removed (by this process or another)."""
-        fs = self.writer.fs
-        aside = f"{self.path}.{uuid.uuid4().hex}.stale"
+        data, version = found
         try:
-            fs.mv(self.path, aside)
-        except FileNotFoundError:
-            return False
-        try:
-            moved = json.loads(fs.cat_file(aside))
+            holder = json.loads(data)
         except ValueError:
-            moved = None
-        if moved != stale:  # a live run's fresh lock, taken between the read and the move: put it back
-            fs.mv(aside, self.path)
-            return False
-        fs.rm(aside)
-        return True
+            holder = None
+        return (holder if isinstance(holder, dict) else None), version
 
 
 def _process_start(pid: int) -> str | None:

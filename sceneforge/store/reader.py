@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import MissingDependencyError, SceneforgeError
 from .layout import MESH_KINDS, layout
+from .location import errors, open_location, options_for
 
 if TYPE_CHECKING:
     import zarr
@@ -25,10 +26,13 @@ def open_group(path: str, mode: str = "r", storage_options: dict | None = None) 
         import zarr
     except ImportError as e:
         raise MissingDependencyError("zarr", "the dataset store", "pip install sceneforge[store]") from e
+    place = open_location(str(path), storage_options)  # a filesystem package missing: one line
     try:
-        return zarr.open_group(str(path), mode=mode, storage_options=storage_options)
+        with errors(place.url):  # an unreachable endpoint, no bucket, access denied: one line each
+            options = None if place.local else options_for(place.url, storage_options)
+            return zarr.open_group(place.url, mode=mode, storage_options=options)
     except (FileNotFoundError, zarr.errors.GroupNotFoundError, NotADirectoryError):
-        raise SceneforgeError(f"{path}: no zarr store there") from None
+        raise place.missing() from None
 
 
 class SceneStore:

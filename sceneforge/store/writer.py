@@ -8,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-import uuid
 from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
@@ -25,6 +24,7 @@ from .layout import (
     layout,
     sizes_of,
 )
+from .location import errors, open_location, options_for
 from .lock import StoreLock
 
 if TYPE_CHECKING:
@@ -179,29 +179,27 @@ class StoreWriter:
 
     Besides the arrays, a run may keep its own files in the store (``put``/``get`` by key,
     e.g. the render pipeline's staging folder): ``put`` is atomic (a temporary file renamed
-    into place), so readers see all of a file or nothing.
+    into place on local files, one PUT on an object store: :class:`~.location.Location`),
+    so readers see all of a file or nothing.
 
     One run writes a store at a time: ``with StoreWriter(url) as writer:`` takes the store's
-    lock (:class:`StoreLock`) for the block and releases it on any exit, exceptions and
+    lock (:class:`StoreLock`, a conditional write where the store lives) for the block and releases it on any exit, exceptions and
     Ctrl-C included; a second run is refused with :class:`StoreLockedError` naming the
     holder. The writers of shard tasks in worker processes write under their run's lock
     and are not entered.
 
     url             : a local path or an fsspec URL (``memory://...``, ``s3://...``)
-    storage_options : passed to fsspec and zarr
+    storage_options : passed to fsspec and zarr, over the defaults of the store's kind of
+                      place (:func:`~.location.options_for`); credentials otherwise come
+                      from where the filesystem package looks (``AWS_*`` for S3)
     """
 
     def __init__(self, url: str, storage_options: dict | None = None):
-        try:
-            import fsspec
-        except ImportError as e:
-            raise MissingDependencyError("fsspec", "the dataset store", "pip install sceneforge[store]") from e
-
         self.url = str(url)
-        self.storage_options = storage_options or {}
-        self.fs, root = fsspec.core.url_to_fs(self.url, **self.storage_options)
-        self.root = root.rstrip("/")
-        self.local = "file" in _protocols(self.fs)
+        self.storage_options = options_for(self.url, storage_options)
+        #: where the store lives and what that place guarantees (atomic files, the lock's writes)
+        self.location = open_location(self.url, self.storage_options)
+        self.fs, self.root, self.local = self.location.fs, self.location.root, self.location.local
         #: what zarr opens, and what a writer in another process is given: an absolute path
         #: for local files (zarr's LocalStore creates folders and writes atomically), else the URL
         self.zarr_url = self.root if self.local else self.url
@@ -216,7 +214,8 @@ class StoreWriter:
 
     def __enter__(self) -> "StoreWriter":
         self._lock = StoreLock(self)
-        self._lock.acquire()
+        with errors(self.url):  # the first request: an unreachable endpoint, no bucket, denied
+            self._lock.acquire()
         return self
 
     def __exit__(self, *exc) -> None:
@@ -247,7 +246,7 @@ class StoreWriter:
         arrays = {name: self._array(name) for name in views[0]}
         keys = [shard_key(array, shard) for array in arrays.values()]
         for key in keys:
-            self.rm(key)
+            self.location.remove(self.path(key))
         start = shard * next(iter(arrays.values())).shards[0]
         write_shard(arrays, start, views)
         self.files.update({key: self.sha256(key) for key in keys})
@@ -337,11 +336,7 @@ class StoreWriter:
 
     def put(self, key: str, data: bytes) -> None:
         """Write ``data`` to ``key`` so that readers see all of it or nothing."""
-        path = self.path(key)
-        tmp = f"{path}.{uuid.uuid4().hex}.partial"
-        self.fs.makedirs(path.rsplit("/", 1)[0], exist_ok=True)
-        self.fs.pipe_file(tmp, data)
-        self.fs.mv(tmp, path)
+        self.location.put(self.path(key), data)
 
     def get(self, key: str) -> bytes | None:
         """The bytes at ``key``, or None when there is no such file."""
@@ -379,8 +374,3 @@ class StoreWriter:
             for path in self.fs.find(self.root):
                 if path.endswith(".partial"):
                     self.fs.rm(path)
-
-
-def _protocols(fs) -> tuple[str, ...]:
-    p = fs.protocol
-    return (p,) if isinstance(p, str) else tuple(p)

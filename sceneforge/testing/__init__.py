@@ -1,4 +1,5 @@
-"""What only tests use: writers of the formats sceneforge reads, and scene builders.
+"""What only tests use: writers of the formats sceneforge reads, scene builders, and a
+local S3 API (:mod:`.s3`, moto's server) for the object-store tests.
 
 Round trips (write a house in a format, read it back, compare) need writers for SUNCG,
 3D-FRONT, glTF, OBJ and PLY; users do not, so they live here rather than in
