@@ -98,7 +98,7 @@ def test_a_render_to_s3_is_whole_valid_and_holds_the_local_arrays(s3, store, loc
     res = run("validate", store)
     assert res.exit_code == 0 and res.output.strip() == f"{store}: valid (dataset store, 6 views)"
     digests = array_digests(store)
-    assert len(digests) == 26 and digests == local_digests
+    assert {"rgb", "depth", "overhead_height"} <= digests.keys() and digests == local_digests
     files = keys(s3, "toy.zarr")
     assert files and not any("/_staging/" in k or k.endswith(".partial") for k in files)
     assert not s3.exists(f"{BUCKET}/toy.zarr.lock")  # released
