@@ -24,8 +24,8 @@ A run lives in one folder::
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
 checkpoint with the same data order (a seeded permutation per epoch).
 
-Fast by default: DataLoader workers (:func:`.trainer.default_workers`), bf16 autocast,
-channels-last and ``cudnn.benchmark`` on a GPU (``config.amp``); under ``torchrun`` one
+Fast by default: DataLoader workers (:func:`.trainer.default_workers`), channels-last
+nets and images, bf16 autocast and ``cudnn.benchmark`` on a GPU (``config.amp``); under ``torchrun`` one
 process per GPU, each on its share of every batch (:mod:`.distributed`), rank 0 alone
 writing the run folder.
 """

@@ -131,17 +131,13 @@ def resolve_amp(amp: str, device: torch.device) -> str:
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def _channels_last(device: torch.device) -> bool:
-    """Whether images go channels-last (NHWC) on ``device``: on CUDA, where cuDNN's
-    convolutions (and tensor cores under mixed precision) are fastest so."""
-    return device.type == "cuda"
-
-
 def _to(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
-    nhwc = _channels_last(device)
+    """The batch on ``device``, its images channels-last (NHWC): cuDNN's convolutions (and
+    tensor cores under mixed precision) and oneDNN's on the CPU are fastest so (a width-0.25
+    depth step of 8 views at 160×120 on 2 cores: 0.58 s against 0.77 s contiguous)."""
     out = {}
     for k, v in batch.items():
-        if nhwc and v.dim() == 4 and v.is_floating_point():
+        if v.dim() == 4 and v.is_floating_point():
             out[k] = v.to(device, non_blocking=True, memory_format=torch.channels_last)
         else:
             out[k] = v.to(device, non_blocking=True)
@@ -160,7 +156,7 @@ class Trainer:
 
     Mixed precision (``config.amp``, :func:`resolve_amp`): the nets' forward pass runs
     under autocast, the losses in float32; fp16 scales the loss (a GradScaler, its state
-    saved in the checkpoint). On CUDA the nets and images are channels-last.
+    saved in the checkpoint). The nets and images are channels-last.
     With ``dist`` enabled, the nets train as DistributedDataParallel copies (``train_nets``;
     ``nets`` are the modules themselves, what checkpoints save), their BatchNorms over the
     whole batch when ``config.sync_batchnorm``.
@@ -177,13 +173,12 @@ class Trainer:
                                   "use --amp fp16 or off")
         torch.manual_seed(config.seed)
         self.nets = self.stage.build(config, frontal)
-        memory = torch.channels_last if _channels_last(device) else torch.preserve_format
         for name, net in self.nets.items():
             if self.dist.enabled and config.sync_batchnorm:
                 net = self.nets[name] = sync_batchnorm(net, device)
-            net.to(device, memory_format=memory).train()
+            net.to(device, memory_format=torch.channels_last).train()
         for net in frontal.values():
-            net.to(memory_format=memory)
+            net.to(memory_format=torch.channels_last)
         params = [p for net in self.nets.values() for p in net.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=config.lr)
         self.scaler = torch.amp.GradScaler(device.type, enabled=self.amp == "fp16")
