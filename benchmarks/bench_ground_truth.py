@@ -23,7 +23,7 @@ Run with one OpenBLAS thread and the malloc thresholds of the render pipeline's 
 than it saves on a view's small matrix products, and fights the tracing threads for the
 cores); set ``OPENBLAS_NUM_THREADS`` to override.
 
-    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--quick]
+    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--houses toy,breakfast,furnished] [--quick]
 """
 
 from __future__ import annotations
@@ -285,15 +285,21 @@ def main():
     ap.add_argument("--repeat", type=int, default=5, help="rounds over the views; the fastest is reported")
     ap.add_argument("--threads", type=int, default=2, help="tracing threads (sceneforge and native)")
     ap.add_argument("--memory-views", type=int, default=500, help="views of the memory run (0: skip it)")
+    ap.add_argument("--houses", default="toy,breakfast,furnished",
+                    help="comma-separated: toy (a bundled toy house), breakfast (the breakfast room subdivided to "
+                         ">= 1 M triangles, where ../shared/scenes is), furnished (the synthetic 1 M-triangle room)")
     ap.add_argument("--quick", action="store_true", help="toy house only, 50 views of memory run")
     args = ap.parse_args()
+    chosen = {"toy"} if args.quick else set(args.houses.split(","))
+    if not chosen <= {"toy", "breakfast", "furnished"}:
+        ap.error(f"--houses: unknown {', '.join(sorted(chosen - {'toy', 'breakfast', 'furnished'}))}")
     tune_allocator()  # as in the pipeline's worker processes (forked pools below inherit it)
 
     toy = load(discover(BUNDLED_TOY)[0])
-    houses = [toy]
-    if not args.quick:
-        if BREAKFAST.exists():
-            houses.append(subdivided(load(BREAKFAST), 1_000_000))
+    houses = [toy] if "toy" in chosen else []
+    if "breakfast" in chosen and BREAKFAST.exists():
+        houses.append(subdivided(load(BREAKFAST), 1_000_000))
+    if "furnished" in chosen:
         houses.append(furnished_room())
     engines = ["embree", "open3d"] if EMBREE_EXTENSION else ["open3d"]
     config = ViewConfig()
@@ -333,11 +339,12 @@ def main():
                   + "   (round by round, median: " + ", ".join(f"{paired[e]:.2f}x" for e in engines)
                   + "; CPU: " + ", ".join(f"{min(r['CPU'] for r in times[e]) / native_cpu:.2f}x" for e in engines)
                   + ")")
-        pair = throughput(toy, cameras_of(toy, 12))
-        print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
-        if args.memory_views:
+        if "toy" in chosen:
+            pair = throughput(toy, cameras_of(toy, 12))
+            print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
+        if args.memory_views and houses:
             n = 50 if args.quick else args.memory_views
-            for house in [toy] + ([] if args.quick else [houses[-1]]):
+            for house in dict.fromkeys([houses[0], houses[-1]]):  # the toy house and the last large one
                 views = n if house is toy else max(1, n // 10)
                 marks = memory_over_views(house, cameras_of(house, 8), views, args.threads)
                 print(f"one worker, {house.id}, {views} views: resident / peak MiB after "
