@@ -356,7 +356,7 @@ def main():
             print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
         if args.memory_views and houses:
             n = 50 if args.quick else args.memory_views
-            for house in dict.fromkeys([houses[0], houses[-1]]):  # the toy house and the last large one
+            for house in houses[:1] + houses[1:][-1:]:  # the first house and the last large one
                 views = n if house is toy else max(1, n // 10)
                 marks = memory_over_views(house, cameras_of(house, 8), views, args.threads)
                 print(f"one worker, {house.id}, {views} views: resident / peak MiB after "
