@@ -20,7 +20,6 @@ the frustum: a point ``p`` is inside when ``n · p + d >= 0``.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -856,22 +855,8 @@ def view_mesh(
 ) -> ViewMesh:
     """The ground-truth mesh of one view (SPEC §5): :func:`object_mesh` and
     :func:`envelope_surface`, traced with ``tracer`` (a :class:`~sceneforge.raytrace.HouseTracer`
-    of ``house``, built here when omitted).
-
-    Where the tracer may use more than one core the two are made side by side: the envelope's
-    trace and triangulation run in compiled code without the GIL, the objects' clipping
-    mostly on one core, so the mesh takes about the longer of the two rather than their sum
-    (a third of the mesh's time on the 1 M-triangle room of ``benchmarks/bench_ground_truth.py``).
-    Neither reads what the other makes: the same meshes either way.
-    """
+    of ``house``, built here when omitted)."""
     from .raytrace import HouseTracer
-    from .raytrace.embree_backend import every_core
 
-    tracer = tracer or HouseTracer(house)
-    if (tracer.threads or every_core()) < 2:
-        return ViewMesh(objects=object_mesh(house, camera, layers, config),
-                        envelope=envelope_surface(tracer, camera, config))
-    with ThreadPoolExecutor(1) as pool:
-        envelope = pool.submit(envelope_surface, tracer, camera, config)
-        objects = object_mesh(house, camera, layers, config)
-        return ViewMesh(objects=objects, envelope=envelope.result())
+    objects = object_mesh(house, camera, layers, config)
+    return ViewMesh(objects=objects, envelope=envelope_surface(tracer or HouseTracer(house), camera, config))
