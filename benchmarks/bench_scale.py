@@ -55,6 +55,7 @@ class Sample:
     houses: int  # houses planned
     workers: dict[int, tuple[float, float]]  # pid -> (resident MiB, CPU seconds)
     main_cpu: float  # CPU seconds of the render process itself, when it is not a worker
+    machine_cpu: float  # CPU seconds every process of the machine has used (/proc/stat)
 
 
 @dataclass
@@ -103,7 +104,7 @@ class Sampler:
         # with one worker the render process renders itself (no pool)
         workers = [self.render_pid] if self.in_process else _workers(self.render_pid)
         return Sample(t, sum(self._seen.values()), houses, {p: _proc(p) for p in workers},
-                      0.0 if self.in_process else _proc(self.render_pid)[1])
+                      0.0 if self.in_process else _proc(self.render_pid)[1], _machine_cpu())
 
 
 def _listdir(path: Path) -> list[str]:
@@ -129,6 +130,13 @@ def _workers(pid: int) -> list[int]:
         if ppid == pid and "spawn_main" in cmdline and "resource_tracker" not in cmdline:
             out.append(int(entry))
     return sorted(out)
+
+
+def _machine_cpu() -> float:
+    """CPU seconds the machine's cores have been busy since boot (user, nice, system, irq)."""
+    fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(x) for x in fields[:8])
+    return (user + nice + system + irq + softirq + steal) / TICKS
 
 
 def _proc(pid: int) -> tuple[float, float]:
@@ -168,7 +176,7 @@ def render(houses: Path, store: Path, args) -> tuple[Sampler, float, str]:
     from sceneforge.store import open_store
 
     last = sampler.samples[-1]
-    sampler.samples.append(Sample(wall, len(open_store(str(store))), last.houses, {}, last.main_cpu))
+    sampler.samples.append(Sample(wall, len(open_store(str(store))), last.houses, {}, last.main_cpu, _machine_cpu()))
     return sampler, wall, output
 
 
@@ -310,10 +318,16 @@ def report(args, sampler: Sampler, wall: float, output: str, store: Path, load_b
     print(f"planning (cameras of {n_houses} houses): {start:.1f} s; rendering {total} views: {wall - start:.1f} s; "
           f"whole run {wall:.1f} s = {total / wall:.2f} views/s end to end")
 
-    print("\nviews/s by tenth of the views:")
+    print("\nviews/s by tenth of the views, with the workers' CPU seconds per view and the cores the "
+          "machine's other processes kept busy meanwhile (a slower tenth with the same CPU per view was "
+          "slowed from outside):")
     deciles = decile_rates(t, views, total, start)
+    ours = np.array([sum(c for _, c in smp.workers.values()) + smp.main_cpu for smp in samples])
+    machine = np.array([smp.machine_cpu for smp in samples])
     for k, (a, b, rate) in enumerate(deciles):
-        print(f"  {10 * k:>3}-{10 * (k + 1):<3}%  {a:7.1f}-{b:7.1f} s  {rate:6.2f} views/s")
+        used, busy = (np.interp(b, t, x) - np.interp(a, t, x) for x in (ours, machine))
+        print(f"  {10 * k:>3}-{10 * (k + 1):<3}%  {a:7.1f}-{b:7.1f} s  {rate:6.2f} views/s  "
+              f"{used / (total / 10):.3f} CPU s/view  others {(busy - used) / (b - a):.2f} cores")
     steady = [r for _, _, r in deciles[1:] if np.isfinite(r)]
     print(f"  first tenth {deciles[0][2]:.2f} views/s (workers starting); the other nine: "
           f"{min(steady):.2f}-{max(steady):.2f}, mean {total * 0.9 / (deciles[-1][1] - deciles[0][1]):.2f} views/s")
