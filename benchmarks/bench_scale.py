@@ -318,11 +318,15 @@ def report(args, sampler: Sampler, wall: float, output: str, store: Path, load_b
     print(f"planning (cameras of {n_houses} houses): {start:.1f} s; rendering {total} views: {wall - start:.1f} s; "
           f"whole run {wall:.1f} s = {total / wall:.2f} views/s end to end")
 
-    print("\nviews/s by tenth of the views, with the workers' CPU seconds per view and the cores the "
+    print("\nviews/s by tenth of the views, with the run's CPU seconds per view (render process and workers) and the cores the "
           "machine's other processes kept busy meanwhile (a slower tenth with the same CPU per view was "
           "slowed from outside):")
     deciles = decile_rates(t, views, total, start)
-    ours = np.array([sum(c for _, c in smp.workers.values()) + smp.main_cpu for smp in samples])
+    ours, last_cpu = [], {}
+    for smp in samples:  # a worker's CPU seconds as last sampled (the final sample has no workers)
+        last_cpu.update({p: c for p, (_, c) in smp.workers.items() if np.isfinite(c)})
+        ours.append(sum(last_cpu.values()) + smp.main_cpu)
+    ours = np.array(ours)
     machine = np.array([smp.machine_cpu for smp in samples])
     for k, (a, b, rate) in enumerate(deciles):
         used, busy = (np.interp(b, t, x) - np.interp(a, t, x) for x in (ours, machine))
