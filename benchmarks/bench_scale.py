@@ -17,7 +17,7 @@ projected cost of 500k views on N cores, from the measured per-core rates (linea
 cores: no shared bottleneck, each core rendering at the rate measured here), and writes a
 PNG of views/s and worker memory over time.
 
-    python benchmarks/bench_scale.py [--houses 250] [--views-per-house 8] [--workers 2] [--plot bench_scale.png]
+    python benchmarks/bench_scale.py [--houses 250] [--views-per-house 8] [--workers 2] [--plot PNG]
         [--sample 1.0] [--cores 2,16,64,256] [--keep DIR] [--quick]
 """
 
@@ -277,7 +277,8 @@ def main():
     ap.add_argument("--seed", type=int, default=0, help="seed of the toy houses")
     ap.add_argument("--sample", type=float, default=1.0, help="seconds between samples")
     ap.add_argument("--cores", default="2,16,64,256", help="core counts of the 500k-view projection")
-    ap.add_argument("--plot", default="bench_scale.png", help="where the PNG goes")
+    ap.add_argument("--plot", default=str(Path(tempfile.gettempdir()) / "bench_scale.png"),
+                    help="where the PNG goes (default: bench_scale.png in the temporary folder)")
     ap.add_argument("--keep", default=None, help="keep the houses and the store in this folder")
     ap.add_argument("--quick", action="store_true", help="12 houses x 4 views, a sample every 0.25 s (a smoke run)")
     args = ap.parse_args()
