@@ -13,6 +13,9 @@ its whole ground truth (tracing, layer rules, normals, overhead camera and truth
 clipping) with each engine, on the same cameras, at the same thread count, so the ratio
 is everything sceneforge does beyond the unavoidable traversals.
 
+Also the same without the mesh, against the native limit without the D5 rays: what a
+render computes by default (its store keeps no meshes; ``sceneforge evaluate`` makes them).
+
 Houses: a bundled toy house, the breakfast room subdivided to >= 1 M triangles (when
 ../shared/scenes is present), and a synthetic furnished room of >= 1 M triangles with
 several hits per ray. Then the throughput of two worker processes, and the peak memory of
@@ -23,7 +26,7 @@ Run with one OpenBLAS thread and the malloc thresholds of the render pipeline's 
 than it saves on a view's small matrix products, and fights the tracing threads for the
 cores); set ``OPENBLAS_NUM_THREADS`` to override.
 
-    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--quick]
+    python benchmarks/bench_ground_truth.py [--views 4] [--repeat 5] [--threads 2] [--houses toy,breakfast,furnished] [--quick]
 """
 
 from __future__ import annotations
@@ -285,15 +288,21 @@ def main():
     ap.add_argument("--repeat", type=int, default=5, help="rounds over the views; the fastest is reported")
     ap.add_argument("--threads", type=int, default=2, help="tracing threads (sceneforge and native)")
     ap.add_argument("--memory-views", type=int, default=500, help="views of the memory run (0: skip it)")
+    ap.add_argument("--houses", default="toy,breakfast,furnished",
+                    help="comma-separated: toy (a bundled toy house), breakfast (the breakfast room subdivided to "
+                         ">= 1 M triangles, where ../shared/scenes is), furnished (the synthetic 1 M-triangle room)")
     ap.add_argument("--quick", action="store_true", help="toy house only, 50 views of memory run")
     args = ap.parse_args()
+    chosen = {"toy"} if args.quick else set(args.houses.split(","))
+    if not chosen <= {"toy", "breakfast", "furnished"}:
+        ap.error(f"--houses: unknown {', '.join(sorted(chosen - {'toy', 'breakfast', 'furnished'}))}")
     tune_allocator()  # as in the pipeline's worker processes (forked pools below inherit it)
 
     toy = load(discover(BUNDLED_TOY)[0])
-    houses = [toy]
-    if not args.quick:
-        if BREAKFAST.exists():
-            houses.append(subdivided(load(BREAKFAST), 1_000_000))
+    houses = [toy] if "toy" in chosen else []
+    if "breakfast" in chosen and BREAKFAST.exists():
+        houses.append(subdivided(load(BREAKFAST), 1_000_000))
+    if "furnished" in chosen:
         houses.append(furnished_room())
     engines = ["embree", "open3d"] if EMBREE_EXTENSION else ["open3d"]
     config = ViewConfig()
@@ -308,9 +317,13 @@ def main():
             # rounds alternate between the native program and each engine, so that the
             # machine's drift (other jobs) hits them alike; each figure is its best round,
             # and the ratios are also taken round by round (their median)
-            natives, times = [], {e: [] for e in engines}
+            natives, lean_natives, times = [], [], {e: [] for e in engines}
+            # a store keeps no meshes by default (store.gt_mesh none), so a render's ground
+            # truth is the frontal and overhead queries alone: their own native limit
+            lean_queries = [q for q in queries if q[1].any()]
             for _ in range(args.repeat):
                 natives.append(native_seconds(exe, house, queries, 1, args.threads))
+                lean_natives.append(native_seconds(exe, house, lean_queries, 1, args.threads))
                 for e in engines:
                     times[e].append(time_views(house, cameras, tracers[e], config, 1))
             hits, rays = natives[0][2:]
@@ -333,11 +346,17 @@ def main():
                   + "   (round by round, median: " + ", ".join(f"{paired[e]:.2f}x" for e in engines)
                   + "; CPU: " + ", ".join(f"{min(r['CPU'] for r in times[e]) / native_cpu:.2f}x" for e in engines)
                   + ")")
-        pair = throughput(toy, cameras_of(toy, 12))
-        print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
-        if args.memory_views:
+            lean_native = min(n[0] for n in lean_natives) / len(cameras)
+            lean = {e: min(r["total"] - r["mesh"] for r in rounds) for e, rounds in times.items()}
+            print(f"  {'without mesh':<16}" + "".join(f"{lean[e]:>16.4f}" for e in engines) + f"{lean_native:>16.4f}"
+                  + "   (a render's default: no ground-truth mesh, no D5 rays)")
+            print("  ratio to native " + "".join(f"{lean[e] / lean_native:>15.2f}x" for e in engines))
+        if "toy" in chosen:
+            pair = throughput(toy, cameras_of(toy, 12))
+            print(f"\n2 worker processes on {toy.id}: {pair:.4f} s/view (throughput)")
+        if args.memory_views and houses:
             n = 50 if args.quick else args.memory_views
-            for house in [toy] + ([] if args.quick else [houses[-1]]):
+            for house in houses[:1] + houses[1:][-1:]:  # the first house and the last large one
                 views = n if house is toy else max(1, n // 10)
                 marks = memory_over_views(house, cameras_of(house, 8), views, args.threads)
                 print(f"one worker, {house.id}, {views} views: resident / peak MiB after "
