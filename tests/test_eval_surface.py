@@ -152,3 +152,33 @@ def test_coverage_of_ground_truth_layers_grows_with_the_layers(small_house):
                        COVERAGE_VARIANTS, np.random.default_rng(0), SurfaceConfig(density=2_000))
     np.testing.assert_array_equal(again.recall, scores.recall)
     np.testing.assert_array_equal(again.precision, scores.precision)
+
+
+def test_the_overhead_mesh_is_cut_to_the_frontal_frustum(small_house):
+    """The ground-truth mesh ends at the frustum's side and near planes (SPEC §5), so the
+    overhead map's mesh is cut there too: what lies outside can never be near the truth."""
+    from dataclasses import replace
+
+    from sceneforge.cameras import Camera, look_at_camera
+    from sceneforge.evaluate import EvalView
+    from sceneforge.evaluate.depth_mesh import OVERHEAD, height_map_mesh
+    from sceneforge.frustum import frustum_planes
+    from sceneforge.raytrace import HouseTracer
+    from sceneforge.view import compute_view
+
+    camera = look_at_camera((0.0, 1.5, -1.6), (0.0, -0.2, 1.0), width=160, height=120)
+    view = EvalView.from_ground_truth(compute_view(small_house, camera, tracer=HouseTracer(small_house)))
+    # a table top 0.5 m high over the whole square overhead map, wider than the view
+    flat = replace(view, overhead_height=np.full_like(view.overhead_height, 0.5))
+    whole = height_map_mesh(flat.overhead_height, flat.overhead_cam_to_world, flat.overhead_extent,
+                            float(flat.overhead_params[2]))
+    cut = flat.meshes()[OVERHEAD]
+    planes = frustum_planes(Camera(view.K, view.cam_to_world, 160, 120))
+    inside = lambda p: (p @ planes[:, :3].T + planes[:, 3] >= -1e-6).all(axis=1)  # noqa: E731
+    assert inside(cut.vertices).all()
+    # the cut keeps exactly the part of the map inside the frustum: its area is the
+    # fraction of the map's area that a dense sample of the map finds inside
+    points = sample_surface(whole, 20_000, np.random.default_rng(0))
+    expected = whole.area * inside(points).mean()
+    assert 0.05 * whole.area < expected < 0.95 * whole.area
+    assert cut.area == pytest.approx(expected, rel=0.02)

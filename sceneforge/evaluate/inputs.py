@@ -13,7 +13,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..cameras import Camera
 from ..conventions import LAYER_NAMES
+from ..frustum import clip_triangles, frustum_planes, weld
 from .depth_mesh import OVERHEAD, Mesh, MeshingConfig, height_map_mesh, perspective_mesh
 
 if TYPE_CHECKING:
@@ -81,13 +83,29 @@ class EvalView:
                    top.cam_to_world, top.half_extent, top.params)
 
     def meshes(self, config: MeshingConfig | None = None) -> dict[str, Mesh]:
-        """World-space mesh of every part: D1..D5 and the overhead height map (:data:`PART_NAMES`)."""
+        """World-space mesh of every part: D1..D5 and the overhead height map (:data:`PART_NAMES`).
+
+        The overhead map's mesh is cut to the frontal camera's frustum (its left, right, top,
+        bottom and near planes), as the ground-truth mesh is (SPEC §5): the paper measures
+        surfaces "within the viewing frustum", and a square overhead map also reaches beside
+        the view, where the truth is cut away and nothing it holds can be near it.
+        """
         config = config or MeshingConfig()
         parts = {name: perspective_mesh(d, self.K, self.cam_to_world, config.edge_factor(name))
                  for name, d in zip(LAYER_NAMES, self.depth)}
-        parts[OVERHEAD] = height_map_mesh(self.overhead_height, self.overhead_cam_to_world,
-                                          self.overhead_extent, float(self.overhead_params[2]), config)
+        top = height_map_mesh(self.overhead_height, self.overhead_cam_to_world,
+                              self.overhead_extent, float(self.overhead_params[2]), config)
+        parts[OVERHEAD] = self._in_frustum(top)
         return parts
+
+    def _in_frustum(self, mesh: Mesh) -> Mesh:
+        """``mesh`` cut to the frontal camera's frustum (:func:`~sceneforge.frustum.frustum_planes`)."""
+        if not len(mesh.faces):
+            return mesh
+        H, W = self.depth.shape[1:]
+        planes = frustum_planes(Camera(self.K, self.cam_to_world, W, H))
+        pieces, _ = clip_triangles(mesh.vertices[mesh.faces], planes)
+        return Mesh(*weld(pieces))
 
 
 @dataclass(frozen=True, eq=False)
