@@ -198,6 +198,24 @@ def test_train_config_round_trips_and_is_validated_on_reload():
     assert TrainConfig(stage="seg", stores=("a",)).with_frozen_runs("runs").depth_run is None
 
 
+def test_the_learning_checks_config_files_are_valid_configs_of_their_stage():
+    """benchmarks/learning_check.sh trains with these files; a renamed field must fail here,
+    not 16 minutes into the recipe."""
+    from sceneforge.config import resolve_config
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
+    script = (root / "learning_check.sh").read_text()
+    render = resolve_config(DatasetConfig, root / "learning" / "render.json")
+    assert (render.width, render.height) == (80, 60)
+    for stage in ("depth", "seg", "overhead"):
+        path = root / "learning" / f"{stage}.json"
+        config = resolve_config(TrainConfig, path, {"stores": ["gt.zarr"]})
+        assert config.stage == stage and config.lr_schedule == "cosine"
+    assert '--config "$recipe/render.json"' in script and "for stage in depth seg overhead" in script
+    assert '--config "$recipe/$stage.json"' in script
+    assert (root / "learning_check.sh").stat().st_mode & 0o111
+
+
 def test_help_imports_no_torch():
     code = ("import sys; from click.testing import CliRunner; from sceneforge.cli.main import cli; "
             "[CliRunner().invoke(cli, [*c, '--help']) for c in (['train'], ['predict'], ['render'], [])]; "
