@@ -18,7 +18,7 @@ from sceneforge.cli.render import RENDER_OPTIONS
 from sceneforge.cli.train import TRAIN_OPTIONS
 
 from sceneforge import schemas
-from sceneforge.config import SCHEMAS, DatasetConfig, field_doc, schema
+from sceneforge.config import SCHEMAS, DatasetConfig, field_doc, resolve_config, schema
 from sceneforge.errors import SceneforgeError
 from sceneforge.learn.config import TrainConfig
 
@@ -200,9 +200,7 @@ def test_train_config_round_trips_and_is_validated_on_reload():
 
 def test_the_learning_checks_config_files_are_valid_configs_of_their_stage():
     """benchmarks/learning_check.sh trains with these files; a renamed field must fail here,
-    not 16 minutes into the recipe."""
-    from sceneforge.config import resolve_config
-
+    not minutes into the recipe."""
     root = Path(__file__).resolve().parents[1] / "benchmarks"
     script = (root / "learning_check.sh").read_text()
     render = resolve_config(DatasetConfig, root / "learning" / "render.json")
