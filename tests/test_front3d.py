@@ -239,7 +239,6 @@ def test_meshes_without_a_type_get_one_from_constructid_or_uid(tmp_path):
     assert len(house.instances[3].faces) == 4
     assert house.losses == {front3d.UNTYPED: 4}
     from click.testing import CliRunner
-
     from sceneforge.cli.main import cli
 
     result = CliRunner().invoke(cli, ["houses", "inspect", str(path), "--strict"])

@@ -35,6 +35,7 @@ from ..conventions import tol
 from ..errors import MissingDependencyError
 from . import T_MAX_MARGIN, HouseTriangles, Rays, nearest_candidates
 
+
 def tie_free_groups(lo: np.ndarray, hi: np.ndarray, pad: float) -> np.ndarray:
     """(m,) int64 a group number per triangle such that two triangles of one group have
     bounding boxes, grown by ``pad``, that are apart along one axis (the same for all):
