@@ -103,13 +103,16 @@ def test_scores_of_the_model_and_the_baseline_by_hand():
     #        background {p 6} ∩ {t 6} → 6/6: mean (1/2 + 0 + 1) / 3
     # baseline (background everywhere): background 6/8, chair 0, table 0 → (6/8) / 3
     assert d["seg_miou"] == pytest.approx((1.5 / 3, 0.75 / 3))
-    # heights above 5 cm: 0.5 and 2.0; the model 0.75 (0.25 off) and removed = 0 (2.0 off);
-    # the baseline 1.0: 0.5 and 1.0 off
-    assert d["overhead_height_l1"] == pytest.approx(((0.25 + 2.0) / 2, (0.5 + 1.0) / 2))
+    # heights above 5 cm: 0.5 and 2.0; the model predicts 0.75 at the first (0.25 off) and
+    # removes the second, so both are scored on the first: the baseline 1.0 is 0.5 off there
+    assert d["overhead_height_l1"] == pytest.approx((0.25, 0.5))
+    assert report.overhead_coverage == 0.5
     out = report.to_dict()
     assert out["depth_absrel"] == {"model": pytest.approx(0.5), "baseline": pytest.approx(0.75), "better": "lower"}
     assert out["seg_miou"]["better"] == "higher" and out["views"] == 1 and out["train_views"] == 1
     assert "depth_absrel" in report.text() and "0.500" in report.text()
+    assert out["overhead_coverage"] == 0.5
+    assert "overhead heights scored on 50.0% of the object pixels" in report.text()
 
 
 def test_depth_is_scored_where_the_model_predicted_and_coverage_says_how_much():

@@ -17,8 +17,11 @@ baseline that knows only the training houses of the split and never looks at the
   prediction or the truth; pixels where the ray hits nothing are left out (as in training).
   The baseline predicts the training views' most frequent class everywhere.
 - ``overhead_height_l1``: mean ``|ĥ − h|`` over the overhead pixels whose true height is
-  above 5 cm (the paper's), a removed predicted height counting as 0 (floor); the baseline
-  predicts the training views' mean height over those pixels everywhere. Only where the
+  above 5 cm (the paper's) that the model predicted a height for; the baseline predicts the
+  training views' mean height over those pixels everywhere. Both are scored on the same
+  pixels, as for depth: ``overhead_coverage`` is the fraction of the object pixels they are
+  (the model leaves a pixel out where its floor removal sees floor). The floor removal
+  itself is scored by the reconstruction's precision and recall, not here. Only where the
   predicted overhead cameras are the store's (no camera proposal run): other cameras see
   other pixels.
 
@@ -140,12 +143,15 @@ class LearningReport:
     train_views: int
     #: why a score is missing, by score name
     missing: dict[str, str]
+    #: fraction of the overhead object pixels (true height above 5 cm) both height scores are over
+    overhead_coverage: float = math.nan
 
     def to_dict(self) -> dict:
         """JSON-ready: ``{"depth_absrel": {"model": x, "baseline": y}, ...}`` (None where
         not predicted), with the views counted."""
         out: dict = {"views": self.views, "train_views": self.train_views,
-                     "depth_coverage": _finite_or_none(self.depth_coverage)}
+                     "depth_coverage": _finite_or_none(self.depth_coverage),
+                     "overhead_coverage": _finite_or_none(self.overhead_coverage)}
         for name in SCORES:
             pair = self.scores.get(name)
             out[name] = None if pair is None else {"model": _finite_or_none(pair[0]),
@@ -166,6 +172,9 @@ class LearningReport:
         if self.scores.get("depth_absrel") is not None:
             lines.append(f"depth scored on {self.depth_coverage:.1%} of D1-D4's object pixels "
                          "(those the model predicted)")
+        if self.scores.get("overhead_height_l1") is not None:
+            lines.append(f"overhead heights scored on {self.overhead_coverage:.1%} of the object pixels above "
+                         "5 cm (those the model kept)")
         return "\n".join(lines)
 
 
@@ -191,7 +200,7 @@ def learning_scores(pred, gt, indices: Sequence[int], baselines: Baselines,
     inter = {"model": np.zeros(SEG_CLASSES), "baseline": np.zeros(SEG_CLASSES)}
     union = {"model": np.zeros(SEG_CLASSES), "baseline": np.zeros(SEG_CLASSES)}
     l1 = np.zeros(2)
-    height_n = 0
+    height_n = height_total = 0
     scored = {"depth_absrel": "depth" in stages, "seg_miou": "seg" in stages,
               "overhead_height_l1": "overhead" in stages and same_overhead_cameras}
     missing = {name: f"no {_STAGE[name]} prediction" for name in SCORES if _STAGE[name] not in stages}
@@ -219,9 +228,11 @@ def learning_scores(pred, gt, indices: Sequence[int], baselines: Baselines,
         if scored["overhead_height_l1"]:
             h = _read(gt, "overhead_height", rows).astype(np.float64)
             above = np.isfinite(h) & (h > MIN_HEIGHT)
-            guess = np.nan_to_num(_read(pred, "overhead_height", rows).astype(np.float64), nan=0.0)
-            l1 += np.abs(guess[above] - h[above]).sum(), np.abs(baselines.height - h[above]).sum()
-            height_n += int(above.sum())
+            guess = _read(pred, "overhead_height", rows).astype(np.float64)
+            keep = above & np.isfinite(guess)
+            l1 += np.abs(guess[keep] - h[keep]).sum(), np.abs(baselines.height - h[keep]).sum()
+            height_n += int(keep.sum())
+            height_total += int(above.sum())
     scores: dict[str, tuple[float, float] | None] = dict.fromkeys(SCORES)
     if scored["depth_absrel"]:
         scores["depth_absrel"] = tuple(absrel / depth_n) if depth_n else (math.nan, math.nan)
@@ -230,4 +241,5 @@ def learning_scores(pred, gt, indices: Sequence[int], baselines: Baselines,
     if scored["overhead_height_l1"]:
         scores["overhead_height_l1"] = tuple(l1 / height_n) if height_n else (math.nan, math.nan)
     return LearningReport(scores, depth_n / depth_total if depth_total else math.nan, len(indices),
-                          baselines.views, missing)
+                          baselines.views, missing,
+                          overhead_coverage=height_n / height_total if height_total else math.nan)
