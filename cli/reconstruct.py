@@ -29,10 +29,15 @@ from .progress import RichProgress, progress_bar
 @click.option("--floor-removal", type=click.Choice(["segmentation", "height"]), default="segmentation",
               show_default=True, help="Remove the floor from the overhead heights by the overhead segmentation "
                                       "(the paper's) or by the 5 cm threshold alone.")
+@click.option("--min-object-probability", type=click.FloatRange(0, 1), default=None,
+              help="Keep a frontal object pixel only where the segmentation net's object probability is at "
+                   "least this, besides its arg-max (as predict's). [default: the arg-max alone, the paper's]")
+@click.option("--min-overhead-object-probability", type=click.FloatRange(0, 1), default=None,
+              help="The same for the overhead heights, with the overhead segmentation net.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=4, show_default=True, help="Photos per batch.")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU when present), cpu, cuda, ...")
-def reconstruct(run, images, out, fov, K, height, pitch, camera_run, resolution, floor_removal, batch_size,
-                device):
+def reconstruct(run, images, out, fov, K, height, pitch, camera_run, resolution, floor_removal,
+                min_object_probability, min_overhead_object_probability, batch_size, device):
     """Reconstruct RGB photos (PNG/JPEG files or folders of them) in 3D with the trained
     overhead RUN (and its frozen depth and segmentation runs): per image, the predicted
     layers (NAME.npz, NAME.exr), a panel (NAME.png) and a mesh of the frontal layers and
@@ -54,5 +59,7 @@ def reconstruct(run, images, out, fov, K, height, pitch, camera_run, resolution,
     with progress_bar(console) as bar:
         written = run_reconstruction(run, images, out, camera=camera, camera_run=camera_run, resolution=resolution,
                                      batch_size=batch_size, device=device, floor_removal=floor_removal,
+                                     min_object_probability=min_object_probability,
+                                     min_overhead_object_probability=min_overhead_object_probability,
                                      progress=RichProgress(bar))
     console.print(f"{out}: {len(written)} photos reconstructed (npz, exr, png panel, ply mesh each)")

@@ -49,6 +49,9 @@ PREDICT_OPTIONS = (
     ConfigOption("--batch-size", "batch_size", type=click.IntRange(min=1)),
     ConfigOption("--split", "split"),
     ConfigOption("--floor-removal", "floor_removal"),
+    ConfigOption("--min-object-probability", "min_object_probability", type=click.FloatRange(0, 1)),
+    ConfigOption("--min-overhead-object-probability", "min_overhead_object_probability",
+                 type=click.FloatRange(0, 1)),
     ConfigOption("--split-file", "split_file", type=click.Path(exists=True, dir_okay=False), convert=absolute_path),
 )
 
@@ -161,6 +164,8 @@ def predict(run, store, out, config, device, workers, overwrite):
     with progress_bar(console) as bar:
         summary = run_prediction(run, store, out, camera_run=config.camera_run, batch_size=config.batch_size,
                                  split=config.split, split_file=config.split_file, floor=config.floor_removal,
+                                 min_object_probability=config.min_object_probability,
+                                 min_overhead_object_probability=config.min_overhead_object_probability,
                                  device=device, workers=workers,
                                  overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"split: {summary.split} ({plural(summary.predicted, 'view')} of {plural(summary.houses, 'house')})")

@@ -17,7 +17,7 @@ pytest.importorskip("zarr", reason="the store extra (zarr) is not installed")
 
 from sceneforge.conventions import NYU40_IDS  # noqa: E402
 from sceneforge.errors import SceneforgeError  # noqa: E402
-from sceneforge.learn.config import FROZEN  # noqa: E402
+from sceneforge.learn.config import FROZEN, PredictConfig  # noqa: E402
 from sceneforge.learn.dataset import (  # noqa: E402
     BACKGROUND,
     CLASS_TO_NYU40,
@@ -223,6 +223,32 @@ def test_masked_layers_empty_the_background():
     finite = torch.isfinite(out)
     assert finite.tolist() == [[True, True, False], [True, True, False], [False, True, False],
                                [False, True, False], [True, True, True]]
+
+
+def test_a_least_object_probability_only_removes_pixels_the_arg_max_keeps():
+    from sceneforge.learn.networks import object_pixels
+    from sceneforge.learn.predict import overhead_heights
+
+    # three pixels: background sure (p_bg 0.8), an object sure (p_bg 0.05), an object by
+    # the arg-max but spread over two classes against background (p_bg 0.3, objects 0.35 each)
+    p = torch.zeros(1, 40, 1, 3)
+    p[0, BACKGROUND, 0] = torch.tensor([0.8, 0.05, 0.3])
+    p[0, 4, 0] = torch.tensor([0.2, 0.95, 0.35])
+    p[0, 5, 0, 2] = 0.35
+    logits = p.clamp_min(1e-9).log()
+    assert object_pixels(logits)[0, 0].tolist() == [False, True, True]
+    assert object_pixels(logits, 0.65)[0, 0].tolist() == [False, True, True]  # 1 - 0.3 = 0.7
+    assert object_pixels(logits, 0.9)[0, 0].tolist() == [False, True, False]
+    assert object_pixels(logits, 0.0)[0, 0].tolist() == [False, True, True]  # never adds a pixel
+    height = torch.tensor([[[0.5, 0.5, 0.5]]])
+    assert torch.isfinite(overhead_heights(height, logits, min_probability=0.9))[0, 0].tolist() == [False, True, False]
+    # frontal: layer 1 and layer 3 both get the threshold; D3/D4 need layer 1's object too
+    depth = torch.ones(1, 5, 1, 3)
+    both = torch.stack([logits, logits], dim=1).reshape(1, 80, 1, 3)
+    kept = torch.isfinite(masked_layers(depth, both, 0.9))[0, :, 0]
+    assert kept.tolist() == [[False, True, False]] * 4 + [[True, True, True]]
+    with pytest.raises(ValueError, match="between 0 and 1"):
+        PredictConfig(min_object_probability=1.5)
 
 
 # -------------------------------------------------------------------------- networks
@@ -563,6 +589,16 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
     in_process = tmp_path / "pred0.zarr"
     predict(run, store, str(in_process), device="cpu", batch_size=4, split="all", workers=0)
     assert array_digests(str(out)) == array_digests(str(in_process))  # workers read, they don't decide
+    sure = tmp_path / "sure.zarr"  # the least object probabilities keep a subset, and are recorded
+    predict(run, store, str(sure), device="cpu", batch_size=4, split="all", workers=0,
+            min_object_probability=0.99, min_overhead_object_probability=0.99)
+    assert open_store(str(sure)).attrs["prediction"]["min_object_probability"] == 0.99
+    assert open_store(str(in_process)).attrs["prediction"]["min_overhead_object_probability"] is None
+    for name in ("depth", "overhead_height"):
+        every, fewer = (np.isfinite(np.asarray(open_store(str(s)).array(name)[:])) for s in (in_process, sure))
+        assert (fewer <= every).all() and fewer.sum() < every.sum(), name
+        if name == "depth":
+            assert (fewer[:, 4] == every[:, 4]).all()  # D5 is no object layer
     pred, truth = open_store(str(out)), open_store(store)
     assert len(pred) == 6 and pred.attrs["prediction"]["stage"] == "overhead"
     # schema, layout and attributes hold; what a 2-step net predicts fails content checks
@@ -786,6 +822,16 @@ def test_reconstruct_a_rendered_photo_gives_a_mesh_inside_the_cameras_frustum(st
     assert ((u >= -eps) & (u <= 64 + eps) & (v >= -eps) & (v <= 48 + eps)).all()
     # the camera sits 1.5 m above the floor of a gravity-aligned frame: nothing is far below it
     assert np.asarray(mesh.vertices)[:, 1].min() > -1.5 - 0.5
+    sure = tmp_path / "sure"  # least object probabilities: a subset of the points
+    result = CliRunner().invoke(cli, ["reconstruct", str(run), str(photos), "--out", str(sure), "--device", "cpu",
+                                      "--K", *map(str, (K[0, 0], K[1, 1], K[0, 2], K[1, 2])), "--resolution", "32",
+                                      "--min-object-probability", "0.99", "--min-overhead-object-probability", "0.99"])
+    assert result.exit_code == 0, result.output
+    thinned = np.load(sure / "room.npz")
+    np.testing.assert_array_equal(thinned["overhead_params"], arrays["overhead_params"])  # same overhead camera
+    for name in ("depth", "overhead_height"):  # (a 1-step height net has no height above 5 cm to thin)
+        every, fewer = np.isfinite(arrays[name]), np.isfinite(thinned[name])
+        assert (fewer <= every).all() and (fewer.sum() < every.sum() or name == "overhead_height"), name
 
     bad = CliRunner().invoke(cli, ["reconstruct", frontal_runs["depth"], str(photos), "--out", str(out)])
     assert bad.exit_code == 1 and "reconstruct needs an overhead run" in bad.output

@@ -255,8 +255,18 @@ class PredictConfig:
     #: segmentation net sees background, the paper's) or "height" (only by the threshold);
     #: heights at or below 5 cm are removed either way (the paper evaluates only above)
     floor_removal: FloorRemoval = "segmentation"
+    #: keep a frontal object pixel (D1..D4) only where the segmentation net's object
+    #: probability (1 minus background's) is at least this, besides its arg-max: fewer,
+    #: surer points (precision for recall); None = the arg-max alone (the paper's)
+    min_object_probability: float | None = None
+    #: the same for the overhead heights, with the overhead segmentation net
+    min_overhead_object_probability: float | None = None
 
     def __post_init__(self):
+        for name in ("min_object_probability", "min_overhead_object_probability"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be None or between 0 and 1, got {value}")
         if self.floor_removal not in typing.get_args(FloorRemoval):
             raise ValueError(f"floor_removal must be one of {typing.get_args(FloorRemoval)}, "
                              f"got {self.floor_removal!r}")

@@ -240,16 +240,30 @@ class CameraProposalNet(nn.Module):
         return self.out(torch.cat([self.features(features), self.encoding(encoding)], dim=1))
 
 
-def masked_layers(depth: Tensor, logits: Tensor) -> Tensor:
+def masked_layers(depth: Tensor, logits: Tensor, min_probability: float | None = None) -> Tensor:
     """Predicted layers with the segmentation's support, NaN = empty (the store's convention).
 
     depth  : (B, 5, H, W) the depth net's D1..D5
     logits : (B, 80, H, W) the segmentation net's scores
+    min_probability : None, or a pixel of a layer is an object only where its object
+             probability (1 − background's) is at least this too (:func:`object_pixels`)
     Returns (B, 5, H, W): D1, D2 where layer 1's class is an object, D3, D4 where layer 3's
     is (and layer 1's), D5 everywhere.
     """
     B, _, H, W = logits.shape
-    objects = logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W).argmax(dim=2) != BACKGROUND
+    objects = object_pixels(logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W), min_probability, dim=2)
     first, second = objects[:, 0], objects[:, 0] & objects[:, 1]
     keep = torch.stack([first, first, second, second, torch.ones_like(first)], dim=1)
     return torch.where(keep, depth, torch.full_like(depth, torch.nan))
+
+
+def object_pixels(logits: Tensor, min_probability: float | None = None, dim: int = 1) -> Tensor:
+    """Where class scores ``logits`` (classes along ``dim``) see an object: the arg-max
+    class is not background (the paper's rule) and, with ``min_probability``, the
+    probability of any object class, 1 − P(background), is at least that. The threshold
+    trades recall for precision: it only ever removes pixels the arg-max keeps."""
+    objects = logits.argmax(dim=dim) != BACKGROUND
+    if min_probability is not None:
+        background = logits.softmax(dim=dim).select(dim, BACKGROUND)
+        objects &= (1.0 - background) >= min_probability
+    return objects

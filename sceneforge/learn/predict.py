@@ -41,7 +41,7 @@ import torch
 from ..errors import SceneforgeError
 from .dataset import BACKGROUND, CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
-from .networks import SEG_LAYERS, masked_layers
+from .networks import SEG_LAYERS, masked_layers, object_pixels
 from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
@@ -99,19 +99,24 @@ def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tup
     return np.array(poses), np.array(extents), np.array(out)
 
 
-def overhead_heights(height: torch.Tensor, seg_logits: torch.Tensor, floor: str = "segmentation") -> torch.Tensor:
+def overhead_heights(height: torch.Tensor, seg_logits: torch.Tensor, floor: str = "segmentation",
+                     min_probability: float | None = None) -> torch.Tensor:
     """Predicted heights (B, R, R) with the floor removed (NaN): where the overhead
-    segmentation logits (B, 40, R, R) say background (``floor="segmentation"``), and at or
-    below :data:`MIN_HEIGHT` in any case."""
+    segmentation logits (B, 40, R, R) say background (``floor="segmentation"``; with
+    ``min_probability``, also where their object probability is below it:
+    :func:`~.networks.object_pixels`), and at or below :data:`MIN_HEIGHT` in any case."""
     keep = height > MIN_HEIGHT
     if floor == "segmentation":
-        keep &= seg_logits.argmax(dim=1) != BACKGROUND
+        keep &= object_pixels(seg_logits, min_probability)
     return torch.where(keep, height, torch.nan)
 
 
 def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool,
-                   floor: str = "segmentation") -> dict:
-    """Every output of a batch as numpy arrays, keyed by store array name."""
+                   floor: str = "segmentation", thresholds: tuple[float | None, float | None] = (None, None)) -> dict:
+    """Every output of a batch as numpy arrays, keyed by store array name; ``thresholds``:
+    the least object probabilities of the frontal and the overhead segmentation (None: the
+    arg-max alone)."""
+    front, top_threshold = thresholds
     rgb = batch["rgb"]
     out: dict[str, np.ndarray] = {}
     if camera:
@@ -126,15 +131,17 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
         out.update(overhead_cam_to_world=pose, overhead_extent=extent, overhead_params=params)
     if eft is not None:
         x, layers, logits = overhead_input(nets, eft, batch)
+        if front is not None:  # the EFT read the arg-max layers it was trained with; the output keeps fewer
+            layers = masked_layers(layers, logits, front)
         top = nets["overhead_seg"](x)
-        out["overhead_height"] = overhead_heights(nets["height"](x)[:, 0], top, floor).cpu().numpy()
+        out["overhead_height"] = overhead_heights(nets["height"](x)[:, 0], top, floor, top_threshold).cpu().numpy()
         out["overhead_category"] = CLASS_TO_NYU40[top.argmax(dim=1).cpu().numpy()].astype(np.uint8)
     else:
         logits = nets["seg"](rgb).prediction if "seg" in nets else None
         layers = None
         if "depth" in nets:
             depth = nets["depth"](rgb).prediction
-            layers = depth if logits is None else masked_layers(depth, logits)
+            layers = depth if logits is None else masked_layers(depth, logits, front)
     if layers is not None:
         out["depth"] = layers.float().cpu().numpy()
     if logits is not None:
@@ -151,7 +158,8 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
             batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
-            floor: str = "segmentation",
+            floor: str = "segmentation", min_object_probability: float | None = None,
+            min_overhead_object_probability: float | None = None,
             device: str = "auto", workers: int | None = None, overwrite: bool = False,
             progress=None) -> PredictSummary:
     """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
@@ -160,6 +168,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     split      : ``test``, ``val``, ``train`` (the houses of that split) or ``all`` (every view)
     split_file : the split file (default: the one the run was trained with)
     floor      : how the floor leaves the overhead heights (:func:`overhead_heights`)
+    min_object_probability, min_overhead_object_probability : None (the arg-max, the
+                 paper's), or the least object probability of a kept pixel of the frontal
+                 layers (D1..D4) and of the overhead heights (:func:`~.networks.object_pixels`)
     workers    : DataLoader worker processes reading the store (None: the trainer's default,
                  :func:`~.trainer.default_workers`; 0: read in this process)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
@@ -204,7 +215,8 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         with torch.no_grad():
             for batch in loader:
                 batch = {k: v.to(dev) for k, v in batch.items()}
-                outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor)
+                outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor,
+                                         (min_object_probability, min_overhead_object_probability))
                 for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
                     shards.add(int(i), {name: value[row] for name, value in outputs.items()})
                 shards.flush()
@@ -214,7 +226,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
         prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
                       "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                      "min_height": MIN_HEIGHT, "floor": floor, "split": split, "views": [int(i) for i in valid],
+                      "min_height": MIN_HEIGHT, "floor": floor, "min_object_probability": min_object_probability,
+                      "min_overhead_object_probability": min_overhead_object_probability,
+                      "split": split, "views": [int(i) for i in valid],
                       "split_file": None if houses is None else str(chosen.path)}
         writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                         failures=source.attrs["failures"], prediction=prediction)

@@ -164,13 +164,16 @@ def _overhead_camera(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, camera:
 def reconstruct(run: str | Path, images: Sequence[str | Path], out: str | Path, *,
                 camera: PhotoCamera | None = None, camera_run: str | Path | None = None,
                 resolution: int = 300, batch_size: int = 4, device: str = "auto",
-                floor_removal: str = "segmentation", progress=None) -> list[Path]:
+                floor_removal: str = "segmentation", min_object_probability: float | None = None,
+                min_overhead_object_probability: float | None = None, progress=None) -> list[Path]:
     """Reconstruct every photo of ``images`` (files or folders) with the overhead ``run``
     into the folder ``out`` (files: module docstring); the PLY paths written.
 
     camera     : intrinsics, height and pitch of the photos (default: the paper's)
     camera_run : a camera proposal run placing the overhead camera (default: the heuristics)
     resolution : overhead image size, pixels
+    min_object_probability, min_overhead_object_probability : as for
+                 :func:`~sceneforge.learn.predict.predict` (None: the arg-max, the paper's)
     Raises :class:`SceneforgeError` for a run that is not an overhead run, or unreadable images.
     """
     camera = camera or PhotoCamera()
@@ -199,7 +202,8 @@ def reconstruct(run: str | Path, images: Sequence[str | Path], out: str | Path, 
     for group in by_size.values():
         for start in range(0, len(group), batch_size):
             chunk = group[start:start + batch_size]
-            for rec in _reconstruct_batch(nets, cam_nets, eft, chunk, camera, resolution, floor_removal, dev):
+            for rec in _reconstruct_batch(nets, cam_nets, eft, chunk, camera, resolution, floor_removal, dev,
+                                          (min_object_probability, min_overhead_object_probability)):
                 written.append(_write(rec, out))
             if progress:
                 progress.advance(len(chunk))
@@ -208,7 +212,7 @@ def reconstruct(run: str | Path, images: Sequence[str | Path], out: str | Path, 
 
 @torch.no_grad()
 def _reconstruct_batch(nets, cam_nets, eft, chunk, camera: PhotoCamera, resolution: int, floor_removal: str,
-                       dev) -> list[Reconstruction]:
+                       dev, thresholds: tuple[float | None, float | None] = (None, None)) -> list[Reconstruction]:
     H, W = chunk[0][1].shape[:2]
     K = camera.intrinsics(W, H)
     pose = camera.pose()
@@ -217,8 +221,13 @@ def _reconstruct_batch(nets, cam_nets, eft, chunk, camera: PhotoCamera, resoluti
     depth_out, seg_out = nets["depth"](rgb), nets["seg"](rgb)
     from .networks import masked_layers
 
-    layers = masked_layers(depth_out.prediction, seg_out.prediction).float().cpu().numpy()
-    cams = [_overhead_camera(layers[k], K, pose, camera, resolution) for k in range(B)]
+    masked = masked_layers(depth_out.prediction, seg_out.prediction)
+    # the overhead camera and the EFT read the arg-max layers the nets were trained with;
+    # a least object probability only thins the layers reconstructed
+    cams = [_overhead_camera(d, K, pose, camera, resolution) for d in masked.float().cpu().numpy()]
+    if thresholds[0] is not None:
+        masked = masked_layers(masked, seg_out.prediction, thresholds[0])
+    layers = masked.float().cpu().numpy()
     To = np.stack([c.cam_to_world for c in cams])
     extent = np.array([c.half_extent for c in cams])
     params = np.stack([c.params for c in cams])
@@ -232,7 +241,7 @@ def _reconstruct_batch(nets, cam_nets, eft, chunk, camera: PhotoCamera, resoluti
              "overhead_extent": torch.from_numpy(extent).to(dev), "overhead_params": torch.from_numpy(params).to(dev)}
     x, _, logits = overhead_input(nets, eft, batch)
     top = nets["overhead_seg"](x)
-    heights = overhead_heights(nets["height"](x)[:, 0], top, floor_removal).float().cpu().numpy()
+    heights = overhead_heights(nets["height"](x)[:, 0], top, floor_removal, thresholds[1]).float().cpu().numpy()
     top_classes = CLASS_TO_NYU40[top.argmax(dim=1).cpu().numpy()].astype(np.uint8)
     classes = logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W).argmax(dim=2).cpu().numpy()
     category = np.where(np.isfinite(layers[:, [0, 2]]), CLASS_TO_NYU40[classes], 0).astype(np.uint8)
