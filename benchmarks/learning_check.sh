@@ -47,7 +47,8 @@ for stage in depth seg overhead; do
     [ "$stage" = overhead ] && more+=(--depth-run "$work/runs/depth" --seg-run "$work/runs/seg")
     step "$stage" "$sf" train "$work/gt.zarr" --config "$recipe/$stage.json" --run "$run" "${more[@]}"
 done
-step predict "$sf" predict "$work/runs/overhead" "$work/gt.zarr" "$work/pred.zarr" --overwrite
+step predict "$sf" predict "$work/runs/overhead" "$work/gt.zarr" "$work/pred.zarr" --config "$recipe/predict.json" \
+    --overwrite
 step evaluate "$sf" evaluate predictions "$work/pred.zarr" "$work/gt.zarr" --json "$work/evaluation.json" \
     --plot "$work/predictions.png"
 echo "== times: ${timings[*]}; whole recipe $(( $(date +%s) - started )) s" >&2

@@ -20,7 +20,7 @@ from sceneforge.cli.train import TRAIN_OPTIONS
 from sceneforge import schemas
 from sceneforge.config import SCHEMAS, DatasetConfig, field_doc, resolve_config, schema
 from sceneforge.errors import SceneforgeError
-from sceneforge.learn.config import TrainConfig
+from sceneforge.learn.config import PredictConfig, TrainConfig
 
 
 def echo_config(root, options):
@@ -211,6 +211,8 @@ def test_the_learning_checks_config_files_are_valid_configs_of_their_stage():
         assert config.stage == stage and config.lr_schedule == "cosine"
     assert '--config "$recipe/render.json"' in script and "for stage in depth seg overhead" in script
     assert '--config "$recipe/$stage.json"' in script
+    predict = resolve_config(PredictConfig, root / "learning" / "predict.json")
+    assert predict.min_object_probability is not None and '--config "$recipe/predict.json"' in script
     assert (root / "learning_check.sh").stat().st_mode & 0o111
 
 
