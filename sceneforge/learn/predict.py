@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneforgeError
-from .dataset import BACKGROUND, CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
+from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers, object_pixels
 from .split import default_split_file, read_split
