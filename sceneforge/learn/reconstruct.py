@@ -222,12 +222,12 @@ def _reconstruct_batch(nets, cam_nets, eft, chunk, camera: PhotoCamera, resoluti
     from .networks import masked_layers
 
     masked = masked_layers(depth_out.prediction, seg_out.prediction)
+    layers = masked.float().cpu().numpy()
     # the overhead camera and the EFT read the arg-max layers the nets were trained with;
     # a least object probability only thins the layers reconstructed
-    cams = [_overhead_camera(d, K, pose, camera, resolution) for d in masked.float().cpu().numpy()]
+    cams = [_overhead_camera(layers[k], K, pose, camera, resolution) for k in range(B)]
     if thresholds[0] is not None:
-        masked = masked_layers(masked, seg_out.prediction, thresholds[0])
-    layers = masked.float().cpu().numpy()
+        layers = masked_layers(masked, seg_out.prediction, thresholds[0]).float().cpu().numpy()
     To = np.stack([c.cam_to_world for c in cams])
     extent = np.array([c.half_extent for c in cams])
     params = np.stack([c.params for c in cams])
