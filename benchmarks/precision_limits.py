@@ -29,6 +29,7 @@ import time
 
 import numpy as np
 
+from sceneforge.conventions import LAYER_NAMES
 from sceneforge.evaluate import (
     GT_KINDS,
     EvalView,
@@ -40,14 +41,13 @@ from sceneforge.evaluate import (
     views_to_score,
 )
 from sceneforge.evaluate.inputs import OVERHEAD
+from sceneforge.evaluate.learning import MIN_HEIGHT, OBJECT_LAYERS
 from sceneforge.pipeline.gt_mesh import GroundTruthMeshes, cache_folder
 from sceneforge.store import open_store
 
-#: true heights at or below this above the floor are floor (the evaluation's 5 cm)
-MIN_HEIGHT = 0.05
-OBJECT_LAYERS = ("D1", "D2", "D3", "D4")
-VARIANTS = (Variant("D1", ("D1",)), Variant("D1-4", OBJECT_LAYERS), Variant("overhead", (OVERHEAD,)),
-            Variant("D1-4 & overhead", (*OBJECT_LAYERS, OVERHEAD)))
+OBJECT_PARTS = tuple(LAYER_NAMES[:OBJECT_LAYERS])
+VARIANTS = (Variant("D1", ("D1",)), Variant("D1-4", OBJECT_PARTS), Variant("overhead", (OVERHEAD,)),
+            Variant("D1-4 & overhead", (*OBJECT_PARTS, OVERHEAD)))
 
 
 def prediction(depth, height, true_depth, true_height):
@@ -56,7 +56,7 @@ def prediction(depth, height, true_depth, true_height):
 
 def true_depths(depth, height, true_depth, true_height):
     out = depth.copy()
-    out[:4] = np.where(np.isfinite(depth[:4]), true_depth[:4], np.nan)
+    out[:OBJECT_LAYERS] = np.where(np.isfinite(depth[:OBJECT_LAYERS]), true_depth[:OBJECT_LAYERS], np.nan)
     return out, np.where(np.isfinite(height), true_height, np.nan)
 
 
@@ -69,7 +69,7 @@ def depth_scale_per_view(depth, height, true_depth, true_height):
     both = np.isfinite(depth[0]) & np.isfinite(true_depth[0])
     out = depth.copy()
     if both.any():
-        out[:4] *= np.median(true_depth[0][both] / depth[0][both])
+        out[:OBJECT_LAYERS] *= np.median(true_depth[0][both] / depth[0][both])
     return out, height
 
 

@@ -1,4 +1,4 @@
-"""Shared test helpers: tiny hand-made houses with known geometry."""
+"""Shared test helpers: tiny hand-made houses with known geometry, and a tiny rendered store."""
 
 from __future__ import annotations
 
@@ -35,6 +35,20 @@ def box_room(name: str, size: float, height: float, room_type: str = "room") -> 
                                   ((size, height, t), (0, height / 2, half + t / 2))]):
         box_instance(h, f"wall{i}", 1, ext, c)
     return h
+
+
+@pytest.fixture(scope="session")
+def tiny_toy_store(tmp_path_factory) -> Path:
+    """The bundled toy houses rendered at 64×48, one view each, no RGB (3 views), for the
+    tests that only read a store (evaluate, its scripts)."""
+    from click.testing import CliRunner
+    from sceneforge.cli.render import render
+
+    out = tmp_path_factory.mktemp("tiny_toy") / "toy.zarr"
+    res = CliRunner().invoke(render, ["bundled:toy", str(out), "--views-per-house", "1",
+                                      "--resolution", "64x48", "--no-rgb"])
+    assert res.exit_code == 0, res.output
+    return out
 
 
 @pytest.fixture

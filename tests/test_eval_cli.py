@@ -18,15 +18,9 @@ def run(*args):
     return CliRunner().invoke(CLI, list(map(str, args)))
 
 
-@pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    from sceneforge.cli.render import render
-
-    out = tmp_path_factory.mktemp("eval") / "toy.zarr"
-    res = CliRunner().invoke(render, ["bundled:toy", str(out), "--views-per-house", "1",
-                                      "--resolution", "64x48", "--no-rgb"])
-    assert res.exit_code == 0, res.output
-    return out
+@pytest.fixture
+def store(tiny_toy_store):
+    return tiny_toy_store
 
 
 def test_coverage_prints_the_table_beside_the_paper_and_plots(store, tmp_path):
@@ -167,6 +161,7 @@ def test_predictions_print_the_learning_scores_beside_the_baselines(store, tmp_p
     assert learning["seg_miou"]["model"] == 1.0 and learning["seg_miou"]["baseline"] < 0.5
     assert learning["overhead_height_l1"]["model"] == 0.0 and learning["overhead_height_l1"]["baseline"] > 0.05
     assert learning["depth_coverage"] == 1.0 and learning["views"] == 1 and learning["train_views"] == 2
+    assert learning["overhead_coverage"] == 1.0
 
 
 def test_a_split_without_training_houses_in_the_truth_is_one_red_line(store, tmp_path):

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "precision_limits.py"
 
@@ -60,18 +59,8 @@ def test_the_per_view_scale_undoes_a_uniform_scale_error(limits):
     assert h is height
 
 
-@pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    from sceneforge.cli.render import render
-
-    out = tmp_path_factory.mktemp("limits") / "toy.zarr"
-    res = CliRunner().invoke(render, ["bundled:toy", str(out), "--views-per-house", "1",
-                                      "--resolution", "64x48", "--no-rgb"])
-    assert res.exit_code == 0, res.output
-    return out
-
-
-def test_the_truth_as_its_own_prediction_scores_the_same_on_every_row(store):
+def test_the_truth_as_its_own_prediction_scores_the_same_on_every_row(tiny_toy_store):
+    store = tiny_toy_store
     out = subprocess.run([sys.executable, str(SCRIPT), str(store), str(store), "--density", "1000"],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
