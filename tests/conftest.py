@@ -1,4 +1,5 @@
-"""Shared test helpers: tiny hand-made houses with known geometry, and a tiny rendered store."""
+"""Shared test helpers: tiny hand-made houses with known geometry, a tiny rendered store, and
+:func:`needs_shared` for the tests that read ``../shared`` (skipped, and counted, where it is absent)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,52 @@ import trimesh
 
 from sceneforge.houses import House, Room, make_instance
 
+#: the folder CI checks out beside the repo (real scenes, tools); a user's clone has none, so
+#: every test that reads it carries :func:`needs_shared`
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 BREAKFAST_ROOM = SHARED / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
+
+
+def needs_shared(path: Path) -> pytest.MarkDecorator:
+    """The mark of a test, or of a parameter, that reads ``path`` under :data:`SHARED`: it
+    skips where ``path`` is absent, saying so as ``../shared/...`` (the machine's own path
+    means nothing to a reader elsewhere), and the run's summary counts it."""
+    return pytest.mark.needs_shared(path.relative_to(SHARED).as_posix())
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "needs_shared(relpath): reads ../shared/relpath; skips where it is absent")
+
+
+def pytest_collection_modifyitems(items):
+    # a skip mark, not pytest.skip in a hook: the skip is then reported at the test's own line
+    for item in items:
+        for mark in item.iter_markers("needs_shared"):
+            if not (SHARED / mark.args[0]).exists():
+                item.add_marker(pytest.mark.skip(
+                    reason=f"needs ../shared/{mark.args[0]} (CI checks ../shared out beside the repo; "
+                           "a user's clone has none)"))
+
+
+def shared_summary(stats: dict, present: bool) -> str | None:
+    """The line that says how many of the tests marked ``needs_shared`` ran and how many
+    skipped, from the terminal reporter's ``stats`` (under xdist the workers' reports come
+    back to the controller with their keywords); None where no such test was run."""
+    marked = [r for reports in stats.values() for r in reports
+              if isinstance(r, pytest.TestReport) and "needs_shared" in r.keywords]
+    if not marked:
+        return None
+    ran = sum(r.when == "call" and not r.skipped for r in marked)
+    skipped = sum(r.skipped for r in marked)
+    where = "../shared present" if present else "../shared absent: a user's clone"
+    return f"tests that need ../shared: {ran} ran, {skipped} skipped ({where})"
+
+
+def pytest_terminal_summary(terminalreporter):
+    # make test (CI's command too) shows whether the tests that need ../shared ran at all
+    line = shared_summary(terminalreporter.stats, SHARED.is_dir())
+    if line:
+        terminalreporter.write_line(line)
 
 
 def box_instance(house: House, name: str, category: int, extents, center, room_id="r0", label=None):

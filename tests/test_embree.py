@@ -18,7 +18,7 @@ from sceneforge.raytrace import HouseTracer
 from sceneforge.raytrace import embree_backend as embree
 from sceneforge.view import ViewConfig, compute_view
 
-from .conftest import BREAKFAST_ROOM
+from .conftest import BREAKFAST_ROOM, needs_shared
 
 NO_EXTENSION = pytest.mark.skipif(not embree.AVAILABLE, reason="sceneforge's Embree extension is not built")
 EMBREE_HEADERS = [Path(root) / "include" / f"embree{major}" / "rtcore.h"
@@ -27,8 +27,7 @@ EMBREE_HEADERS = [Path(root) / "include" / f"embree{major}" / "rtcore.h"
 
 def houses():
     yield from (pytest.param(s, id=s.id) for s in discover(BUNDLED_TOY))
-    yield pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=pytest.mark.skipif(
-        not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)"))
+    yield pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=needs_shared(BREAKFAST_ROOM))
 
 
 def view_arrays(view) -> dict[str, np.ndarray]:
@@ -157,12 +156,11 @@ def _render_with(engine: str, source, out: Path, monkeypatch) -> dict[str, str]:
 
 @NO_EXTENSION
 @pytest.mark.slow
-@pytest.mark.parametrize("source", ["bundled:toy", *(p.values[0] for p in houses() if p.values[0] == BREAKFAST_ROOM)])
+@pytest.mark.parametrize("source", [
+    "bundled:toy", pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=needs_shared(BREAKFAST_ROOM))])
 def test_stores_are_identical_with_either_engine(source, tmp_path, monkeypatch):
     """A default-resolution store (cameras sampled, layers, overhead, meshes) rendered with
     the extension and with the Open3D engine: every array the same (array digests)."""
-    if source == BREAKFAST_ROOM and not BREAKFAST_ROOM.exists():
-        pytest.skip(f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)")
     ours = _render_with("embree", source, tmp_path / "embree.zarr", monkeypatch)
     theirs = _render_with("open3d", source, tmp_path / "open3d.zarr", monkeypatch)
     assert len(ours) >= 20 and ours == theirs

@@ -30,7 +30,7 @@ from sceneforge.houses import BUNDLED_TOY, House, Room, discover, load, make_ins
 from sceneforge.layers import Layers, frontal_layers
 from sceneforge.raytrace import HouseTracer
 
-from .conftest import BREAKFAST_ROOM, box_instance
+from .conftest import BREAKFAST_ROOM, box_instance, needs_shared
 
 # Plane z >= 0 (unit normal +Z pointing inside).
 Z_PLANE = np.array([0.0, 0.0, 1.0, 0.0])
@@ -447,7 +447,7 @@ def test_compiled_envelope_surface_of_toy_houses_equals_the_numpy_steps():
 
 
 @pytest.mark.skipif(not depth_mesh.COMPILED, reason="sceneforge's extension is not built")
-@pytest.mark.skipif(not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)")
+@needs_shared(BREAKFAST_ROOM)
 def test_compiled_envelope_surface_of_the_breakfast_room_equals_the_numpy_steps():
     # Window openings: rays that leave the house, holes in D5.
     house = load(BREAKFAST_ROOM)

@@ -18,7 +18,7 @@ from sceneforge.houses import House, LoadOptions, Material, load, make_instance
 from sceneforge.houses.formats.generic import load_house, tagged_name
 from sceneforge.testing.generic import write_house
 
-from .conftest import BREAKFAST_ROOM
+from .conftest import BREAKFAST_ROOM, needs_shared
 
 FORMATS = (".glb", ".gltf", ".obj", ".ply")
 
@@ -456,9 +456,8 @@ def test_gltf_with_missing_buffer_names_it(house, tmp_path):
 # --------------------------------------------------------------------------- the real scene
 
 
+@needs_shared(BREAKFAST_ROOM)
 def test_breakfast_room_categories():
-    if not BREAKFAST_ROOM.is_file():
-        pytest.skip(f"real scene not found at {BREAKFAST_ROOM} (see /work/shared/scenes/README.md)")
     h = load_house(BREAKFAST_ROOM, LoadOptions())
     # "Walls" holds the walls and the ceiling: the bundled map sends it to "shell", split in two
     parts = {i.name: i.category_name for i in h.instances if i.label == "Walls"}

@@ -21,7 +21,7 @@ from sceneforge.layers import (
 )
 from sceneforge.raytrace import Hits, HouseTracer
 
-from .conftest import BREAKFAST_ROOM
+from .conftest import BREAKFAST_ROOM, needs_shared
 
 WALL, FLOOR, CEILING = NYU40_IDS["wall"], NYU40_IDS["floor"], NYU40_IDS["ceiling"]
 CABINET, TABLE, PROP = NYU40_IDS["cabinet"], NYU40_IDS["table"], NYU40_IDS["otherprop"]
@@ -400,9 +400,8 @@ def test_engines_agree_on_every_pixel_of_bundled_toy_houses():
             assert_same_layers(fast, layers_from_all_hits(house, camera, tracer))
 
 
+@needs_shared(BREAKFAST_ROOM)
 def test_engines_agree_on_every_pixel_of_the_breakfast_room():
-    if not BREAKFAST_ROOM.is_file():
-        pytest.skip(f"real scene not found at {BREAKFAST_ROOM}")
     house = load(BREAKFAST_ROOM)
     # in the room, looking at the table and chairs and out of a window
     camera = look_at_camera((0.5, 1.5, 1.5), (-0.35, -0.196, -0.92), width=W, height=H)
@@ -460,8 +459,7 @@ def test_compiled_rules_equal_the_numpy_rules_on_random_hits(seed):
 
 @COMPILED
 @pytest.mark.parametrize("source", [pytest.param(s, id=s.id) for s in discover(BUNDLED_TOY)] + [
-    pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=pytest.mark.skipif(
-        not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent"))])
+    pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=needs_shared(BREAKFAST_ROOM))])
 def test_compiled_rules_equal_the_numpy_rules_on_house_views(source):
     """Every pixel of the frontal and overhead layers of two views of each house."""
     from sceneforge.overhead import OverheadConfig, overhead_camera, overhead_instances

@@ -40,7 +40,7 @@ from sceneforge.render import (
 from sceneforge.render.lights import WINDOW_CONE, room_ambient
 from sceneforge.render.tonemap import KEY, aces, auto_exposure
 
-from .conftest import BREAKFAST_ROOM, box_instance, box_room
+from .conftest import BREAKFAST_ROOM, box_instance, box_room, needs_shared
 
 pytest.importorskip("pyrender", reason="pyrender is not installed (pip install 'sceneforge[render]')")
 
@@ -91,7 +91,7 @@ def test_zbuffer_depth_equals_ray_traced_first_hit(renderer, toy_houses):
         assert close[seen].mean() >= 0.99, f"{house.id}: {close[seen].mean():.4f} of pixels within 1 mm"
 
 
-@pytest.mark.skipif(not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)")
+@needs_shared(BREAKFAST_ROOM)
 def test_textured_gltf_scene_is_aligned(renderer):
     house = load(BREAKFAST_ROOM)
     assert any(i.material.texture is not None and i.uv is not None for i in house.instances)

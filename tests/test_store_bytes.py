@@ -14,7 +14,7 @@ from sceneforge.houses import BUNDLED_TOY
 from sceneforge.pipeline import render_dataset
 from sceneforge.store import array_digests, check_store
 
-from .conftest import BREAKFAST_ROOM
+from .conftest import BREAKFAST_ROOM, needs_shared
 
 #: the old defaults, still selectable
 OLD = {"store": {"gt_mesh": "all", "codec": "blosc-zstd"}}
@@ -26,10 +26,9 @@ def shard_bytes_per_view(store: Path, views: int) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("houses", [BUNDLED_TOY, BREAKFAST_ROOM], ids=["toy", "breakfast_room"])
+@pytest.mark.parametrize("houses", [BUNDLED_TOY, pytest.param(BREAKFAST_ROOM, marks=needs_shared(BREAKFAST_ROOM))],
+                         ids=["toy", "breakfast_room"])
 def test_the_default_store_is_a_fraction_of_the_old_with_the_same_values(houses, tmp_path):
-    if houses == BREAKFAST_ROOM and not BREAKFAST_ROOM.exists():
-        pytest.skip(f"{BREAKFAST_ROOM} is absent (the shared scenes are not checked out)")
     stores = {}
     for name, overrides in (("old", OLD), ("new", {})):
         stores[name] = tmp_path / f"{name}.zarr"

@@ -13,7 +13,7 @@ from sceneforge.overhead import FLOOR, OverheadConfig, overhead_instances, overh
 from sceneforge.raytrace import HouseTracer
 from sceneforge.view import ViewConfig, compute_view
 
-from .conftest import BREAKFAST_ROOM
+from .conftest import BREAKFAST_ROOM, needs_shared
 
 SMALL = CameraSamplerConfig(width=64, height=48)
 TOP = OverheadConfig(resolution=40)
@@ -21,8 +21,7 @@ TOP = OverheadConfig(resolution=40)
 
 def houses():
     yield from (pytest.param(s, id=s.id) for s in discover(BUNDLED_TOY))
-    yield pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=pytest.mark.skipif(
-        not BREAKFAST_ROOM.exists(), reason=f"{BREAKFAST_ROOM} is absent (shared scenes not checked out)"))
+    yield pytest.param(BREAKFAST_ROOM, id="breakfast_room", marks=needs_shared(BREAKFAST_ROOM))
 
 
 def first_view(house, tracer):
