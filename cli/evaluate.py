@@ -35,10 +35,14 @@ def _json(func):
                         help="Also write the table values and mean curves to this JSON file.")(func)
 
 
-def _check(plot, json_path):
-    """Both outputs writable, before hours of scoring."""
-    check_output(plot, "plot")
-    check_output(json_path, "JSON file")
+def _check(plot, json_path, inputs):
+    """Both outputs writable and none of the ``inputs`` ((what, path) pairs), before hours of scoring."""
+    from sceneforge.store.guard import check_apart
+
+    for path, what in ((plot, "plot"), (json_path, "JSON file")):
+        check_output(path, what)
+        if path is not None:
+            check_apart(path, what, inputs)
 
 
 def _truth(path: str):
@@ -103,7 +107,7 @@ def coverage(store, config, limit, json_path, plot):
     from sceneforge.evaluate import COVERAGE_VARIANTS, coverage_views, evaluate_views
     from sceneforge.evaluate.stores import views_to_score
 
-    _check(plot, json_path)
+    _check(plot, json_path, [("store", store)])
     s, meshes = _truth(store)
     views = _scored(coverage_views(s, limit, meshes), len(views_to_score(s, limit)))
     report = evaluate_views(views, COVERAGE_VARIANTS, config.seed, config.surface, config.meshing)
@@ -147,7 +151,7 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     from sceneforge.evaluate.stores import check_matching, empty_views, views_to_score
     from sceneforge.store import open_store
 
-    _check(plot, json_path)
+    _check(plot, json_path, [("prediction store", pred), ("ground-truth store", gt), ("split file", split_file)])
     pred_store, (gt_store, gt_meshes) = open_store(pred), _truth(gt)
     try:
         houses = _house_split(split_file, pred_store, gt)

@@ -18,7 +18,7 @@ import signal
 
 import click
 
-from sceneforge.errors import EXIT_ERROR, EXIT_INTERRUPTED, SceneforgeError
+from sceneforge.errors import EXIT_ERROR, EXIT_INTERRUPTED, Interrupted, SceneforgeError
 
 #: command name → "module:attribute" under ``sceneforge.cli``
 COMMANDS = {
@@ -37,10 +37,10 @@ COMMANDS = {
 }
 
 
-#: what a command interrupted by Ctrl-C says about going on (default: nothing)
+#: what a command interrupted by Ctrl-C says about going on (default: nothing; a command
+#: whose next step depends on how far it got raises :class:`Interrupted` with its own hint)
 ON_INTERRUPT = {
     "render": "run the same command again to resume",
-    "train": "run it again with --resume to continue from the last checkpoint",
 }
 
 
@@ -54,6 +54,17 @@ class _WarningLines(logging.Handler):
 def _oserror_line(e: OSError) -> str:
     what = f"{e.filename}: " if e.filename else ""
     return f"{what}{e.strerror or e}"
+
+
+def _own_line(e: SceneforgeError) -> str:
+    """The error's own message: one raised in a DataLoader worker process comes back with
+    PyTorch's "Caught ... in DataLoader worker process 0" and the worker's traceback in
+    front of it, the message on the traceback's last line."""
+    text = str(e)
+    if "Original Traceback" not in text:
+        return text
+    last = text.rstrip().rsplit("\n", 1)[-1]
+    return last.split(": ", 1)[1] if last.startswith(type(e).__module__) else last
 
 
 class LazyGroup(click.Group):
@@ -76,14 +87,13 @@ class LazyGroup(click.Group):
         try:
             return super().invoke(ctx)
         except SceneforgeError as e:
-            click.secho(f"error: {e}", fg="red", err=True)
+            click.secho(f"error: {_own_line(e)}", fg="red", err=True)
             ctx.exit(EXIT_ERROR)
         except OSError as e:  # an unwritable path, a full disk, a file gone: the user's to fix
             click.secho(f"error: {_oserror_line(e)}", fg="red", err=True)
             ctx.exit(EXIT_ERROR)
-        except KeyboardInterrupt:
-            name = ctx.invoked_subcommand or ""
-            hint = ON_INTERRUPT.get(name)
+        except KeyboardInterrupt as e:
+            hint = e.hint if isinstance(e, Interrupted) else ON_INTERRUPT.get(ctx.invoked_subcommand or "")
             click.secho(f"interrupted{f': {hint}' if hint else ''}", fg="red", err=True)
             ctx.exit(EXIT_INTERRUPTED)
 

@@ -22,8 +22,9 @@ def _is_url(path: str) -> bool:
 
 
 def check_output(path: str | os.PathLike | None, what: str = "output", kind: str = "file") -> None:
-    """Raise :class:`SceneforgeError` (one line) unless ``what`` can be written at ``path``,
-    by writing a probe file where it will go (and removing it). None and URLs (fsspec: the
+    """Raise :class:`SceneforgeError` (one line) unless ``what`` can be written at ``path``:
+    not inside a store (:func:`~sceneforge.store.guard.check_not_in_store`), and writable,
+    checked by writing a probe file where it will go (and removing it). None and URLs (fsspec: the
     store writer checks those) pass.
 
     kind : ``"file"``; ``"folder"``, created now (e.g. the folder export writes files into);
@@ -32,6 +33,9 @@ def check_output(path: str | os.PathLike | None, what: str = "output", kind: str
     """
     if path is None or _is_url(str(path)):
         return
+    from sceneforge.store.guard import check_not_in_store
+
+    check_not_in_store(path, what)  # a store's files are its writer's alone
     path = Path(path)
     if kind != "file" and path.is_file():
         raise SceneforgeError(f"{path}: {what} is a file, not a folder")

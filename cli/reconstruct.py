@@ -36,8 +36,11 @@ from .progress import RichProgress, progress_bar
               help="The same for the overhead heights, with the overhead segmentation net.")
 @click.option("--batch-size", type=click.IntRange(min=1), default=4, show_default=True, help="Photos per batch.")
 @click.option("--device", default="auto", show_default=True, help="auto (GPU when present), cpu, cuda, ...")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the files of these photos (NAME.npz, .exr, .png, .ply) that OUT already holds; "
+                   "nothing else in OUT is touched.")
 def reconstruct(run, images, out, fov, K, height, pitch, camera_run, resolution, floor_removal,
-                min_object_probability, min_overhead_object_probability, batch_size, device):
+                min_object_probability, min_overhead_object_probability, batch_size, device, overwrite):
     """Reconstruct RGB photos (PNG/JPEG files or folders of them) in 3D with the trained
     overhead RUN (and its frozen depth and segmentation runs): per image, the predicted
     layers (NAME.npz, NAME.exr), a panel (NAME.png) and a mesh of the frontal layers and
@@ -61,5 +64,5 @@ def reconstruct(run, images, out, fov, K, height, pitch, camera_run, resolution,
                                      batch_size=batch_size, device=device, floor_removal=floor_removal,
                                      min_object_probability=min_object_probability,
                                      min_overhead_object_probability=min_overhead_object_probability,
-                                     progress=RichProgress(bar))
+                                     overwrite=overwrite, progress=RichProgress(bar))
     console.print(f"{out}: {len(written)} photos reconstructed (npz, exr, png panel, ply mesh each)")

@@ -10,6 +10,7 @@ from click.core import ParameterSource
 
 from sceneforge.config import DatasetConfig
 from sceneforge.errors import EXIT_FAILURES
+from sceneforge.store.export import FORMATS
 
 from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
 from .output import atomic_output, check_output, plural
@@ -69,8 +70,12 @@ RENDER_OPTIONS = (
               help="When houses changed, were added or removed since OUT was rendered (their files are "
                    "fingerprinted), redo exactly those; without it such a run is refused, naming them.")
 @click.option("--retry-failed", is_flag=True, help="Render the houses that failed again.")
+@click.option("--repair", is_flag=True,
+              help="Render with the config OUT records (the options above are not needed): with any re-run, "
+                   "the shards whose files are damaged or missing are rendered again and files no run wrote "
+                   "are removed, so that OUT ends as a clean render (`sceneforge validate` prints this command).")
 @click.option("--no-rgb", is_flag=True, help="The same as --rgb none.")
-def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed, no_rgb):
+def render(houses, out, config, workers, scheduler, overwrite, update, retry_failed, repair, no_rgb):
     """Render every house in HOUSES into the zarr store OUT (a path or an fsspec URL).
 
     Per view: five depth layers, classes, instances, the overhead camera and its ground
@@ -79,7 +84,9 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
     anything `sceneforge houses inspect` takes, e.g. `bundled:toy`.
 
     Run the same command again after an interruption to resume; the result is identical
-    to an uninterrupted run. One run writes a store at a time (a second is refused). Houses
+    to an uninterrupted run. A re-run on a complete store checks its files against the
+    hashes recorded when they were written and renders the damaged shards again (--repair:
+    without restating the options). One run writes a store at a time (a second is refused). Houses
     that fail are recorded in the store's failure log and the others complete; the exit
     code is then 3 (1: an error, nothing lost; 2: a bad option).
     """
@@ -97,7 +104,13 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
     console = Console(highlight=False, stderr=True, soft_wrap=True)
     with progress_bar(console) as bar:
         summary = render_dataset(houses, out, config, workers=workers, scheduler=scheduler, overwrite=overwrite,
-                                 update=update, retry_failed=retry_failed, progress=RichProgress(bar))
+                                 update=update, retry_failed=retry_failed, repair=repair,
+                                 progress=RichProgress(bar))
+    if summary.damaged:
+        console.print(f"repaired: {plural(len(summary.damaged), 'file')} not as written "
+                      f"({_listed(summary.damaged)}); their shards rendered again")
+    if summary.removed:
+        console.print(f"removed: {plural(len(summary.removed), 'file')} no run wrote ({_listed(summary.removed)})")
     if summary.changes:
         console.print(f"updated: {summary.changes.describe()}")
     if summary.retried:
@@ -121,6 +134,10 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
         raise SystemExit(EXIT_FAILURES)
 
 
+def _listed(keys, shown: int = 3) -> str:
+    return ", ".join(keys[:shown]) + (f" and {len(keys) - shown} more" if len(keys) > shown else "")
+
+
 @click.command()
 @click.argument("store")
 @click.option("--quiet", "-q", is_flag=True, help="Print only the summary line.")
@@ -132,7 +149,8 @@ def validate(store, quiet):
     store, the ground-truth layer rules (masks match NaNs, layers in order); meshes
     non-empty where the view has layers, offsets and faces in range.
 
-    Prints one summary line, then a line per problem (each rule once, with the views that
+    Prints one summary line (of a prediction store: how many of its views were predicted,
+    and of which split), then a line per problem (each rule once, with the views that
     break it). Exit code: 0 valid, 3 invalid or incomplete, 1 no store there.
     """
     from sceneforge.store import check_store
@@ -150,7 +168,8 @@ def validate(store, quiet):
 
 @click.command()
 @click.argument("store")
-@click.option("--view", "index", type=int, required=True, help="View index, 0 to the store's views − 1.")
+@click.option("--view", "index", type=int, required=True,
+              help="View index, 0 to the store's views − 1; of a prediction store, one it predicted.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="PNG to write. Default: <store name>_view<I>.png in the current folder.")
 @click.option("--3d", "ply", type=click.Path(dir_okay=False), default=None,
@@ -161,7 +180,9 @@ def validate(store, quiet):
 def show(store, index, output, ply, truth):
     """Write a PNG panel of one view: RGB, D1..D5 with a colour bar, layer classes, overhead
     height and classes, and a top-down view with the overhead camera's footprint. With
-    --truth, a predicted view under its truth instead."""
+    --truth, a predicted view under its truth instead. Of a prediction store, only a view it
+    predicted (the others are blank)."""
+    from sceneforge.evaluate.stores import check_predicted, matching_view
     from sceneforge.preview import write_panel, write_point_cloud
     from sceneforge.store import open_store
 
@@ -171,10 +192,9 @@ def show(store, index, output, ply, truth):
     if not 0 <= index < len(s):
         span = f"numbered 0 to {len(s) - 1}" if len(s) else "none"
         raise click.BadParameter(f"{index}: the store has {plural(len(s), 'view')} ({span})", param_hint="--view")
+    check_predicted(s, index)  # a view predict skipped is blank: drawing it would show an empty prediction
     gt = None
     if truth is not None:
-        from sceneforge.evaluate.stores import matching_view
-
         gt = open_store(truth)
         matching_view(s, gt, index)
     name = Path(store.rstrip("/")).name.removesuffix(".zarr")
@@ -192,20 +212,33 @@ def show(store, index, output, ply, truth):
 @click.command()
 @click.argument("store")
 @click.argument("out_dir", type=click.Path(file_okay=False))
-@click.option("--format", "fmt", type=click.Choice(["exr"]), default="exr", show_default=True,
-              help="File format: one multi-part OpenEXR per view (frontal D1..D5 and RGB, overhead "
-                   "height and D1..D5, camera metadata in the headers).")
-def export(store, out_dir, fmt):
+@click.option("--format", "fmt", type=click.Choice(sorted(FORMATS)), default="exr", show_default=True,
+              help="File format: one multi-part OpenEXR per view (frontal: D1..D5 and RGB as float "
+                   "channels, the classes category.D1/D3/D5 and instances instance.D1/D3 as uint "
+                   "channels; overhead: height, D1..D5 and category; camera metadata in the headers).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace an earlier export in OUT_DIR: its view files are deleted first (all of them, also "
+                   "views beyond this store's count). A folder holding any other file is refused.")
+def export(store, out_dir, fmt, overwrite):
     """Write every view of STORE as a file in OUT_DIR, named by its view index with six
-    digits: view_000000.exr, view_000001.exr, ... (each written atomically)."""
+    digits: view_000000.exr, view_000001.exr, ... (each written atomically).
+
+    OUT_DIR is new or empty, or holds an earlier export (replaced with --overwrite); never
+    the store, a folder inside or around it, or inside any zarr store. An EXR file holds the
+    view's depth layers, RGB, classes (NYU40, 0 = none) and instances (the int32 bits: -1,
+    none, reads as 4294967295 until viewed as int32)."""
     from rich.progress import track
 
-    from sceneforge.store import export_exr, open_store
+    from sceneforge.store import open_store
+    from sceneforge.store.export import check_export_folder
 
-    check_output(out_dir, "export folder", kind="folder")
+    earlier = check_export_folder(out_dir, store, overwrite=overwrite)
     s = open_store(store)
+    check_output(out_dir, "export folder", kind="folder")
+    for path in earlier:  # all of them, so that the folder never mixes two exports
+        path.unlink()
     out = Path(out_dir)
     for i in track(range(len(s)), description="exporting", transient=True):
         with atomic_output(out / f"view_{i:06d}.{fmt}") as tmp:
-            export_exr(s, i, tmp)
+            FORMATS[fmt](s, i, tmp)
     click.echo(f"{plural(len(s), 'view')} written to {out}")

@@ -27,8 +27,22 @@ class MissingDependencyError(SceneforgeError):
         super().__init__(f"{feature} needs {package}: install it with `{install}`")
 
 
+class DamagedStoreError(SceneforgeError):
+    """A store's file cannot be read as written (truncated, changed or deleted since):
+    names the array, the views and the shard file, and the command that says how to repair it."""
+
+
 class StoreLockedError(SceneforgeError):
     """Another live process holds the lock of a store (a second writer is refused)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C (or SIGTERM) stopped a command that knows how to go on: ``hint`` says what to
+    run next, as the CLI prints it after "interrupted: "."""
+
+    def __init__(self, hint: str):
+        super().__init__(hint)
+        self.hint = hint
 
 
 #: Exit codes of the ``sceneforge`` command, defined once (README "Exit codes").

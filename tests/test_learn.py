@@ -833,8 +833,15 @@ def test_reconstruct_a_rendered_photo_gives_a_mesh_inside_the_cameras_frustum(st
         every, fewer = np.isfinite(arrays[name]), np.isfinite(thinned[name])
         assert (fewer <= every).all() and (fewer.sum() < every.sum() or name == "overhead_height"), name
 
-    bad = CliRunner().invoke(cli, ["reconstruct", frontal_runs["depth"], str(photos), "--out", str(out)])
+    bad = CliRunner().invoke(cli, ["reconstruct", frontal_runs["depth"], str(photos), "--out", str(tmp_path / "x")])
     assert bad.exit_code == 1 and "reconstruct needs an overhead run" in bad.output
+    # the photos' files are there already: replaced only with --overwrite
+    again = ["reconstruct", str(run), str(photos), "--out", str(out), "--device", "cpu", "--resolution", "32"]
+    kept = (out / "room.npz").read_bytes()
+    bad = CliRunner().invoke(cli, again)
+    assert bad.exit_code == 1 and "already holds room.npz and 3 more; pass --overwrite" in bad.output
+    assert (out / "room.npz").read_bytes() == kept
+    assert CliRunner().invoke(cli, [*again, "--overwrite"]).exit_code == 0
 
 
 def test_reconstructed_overhead_heights_are_kept_inside_the_frustum():

@@ -280,7 +280,8 @@ def test_an_unreachable_endpoint_is_one_red_line(s3):
     assert done.returncode == 1 and done.stdout == ""
     assert done.stderr.splitlines() == [
         f'error: s3://{BUCKET}/toy.zarr: cannot reach S3 (Could not connect to the endpoint URL: '
-        f'"http://127.0.0.1:{port}/{BUCKET}/toy.zarr.lock"); check the endpoint (AWS_ENDPOINT_URL) and the network']
+        f'"http://127.0.0.1:{port}/{BUCKET}/toy.zarr/zarr.json"); check the endpoint (AWS_ENDPOINT_URL) and the '
+        'network']  # the first request: what is at OUT (sceneforge.store.guard)
 
 
 def test_a_missing_bucket_is_one_red_line_and_not_created(s3):
@@ -317,7 +318,7 @@ def test_every_command_reads_a_store_on_s3(s3, store, tmp_path):
     res = run("train", store, "--stage", "depth", "--run", tmp_path / "run", "--max-steps", 2, "--batch-size", 2,
               "--width", 0.125, "--val-fraction", 0, "--test-fraction", 0.34, "--device", "cpu", "--no-tensorboard", "--workers", 1)
     assert res.exit_code == 0 and "2 steps" in " ".join(res.output.split()), res.output
-    split = json.loads(s3.cat_file(f"{BUCKET}/split.json"))
+    split = json.loads(s3.cat_file(f"{BUCKET}/toy.split.json"))
     assert (len(split["train"]), len(split["test"])) == (2, 1)
     pred = f"s3://{BUCKET}/pred.zarr"
     res = run("predict", tmp_path / "run", store, pred, "--device", "cpu")

@@ -259,7 +259,11 @@ def test_validate_reports_broken_content(store_copy):
     assert res.exit_code == EXIT_FAILURES
     lines = res.output.strip().splitlines()
     assert lines[0] == f"{store_copy}: invalid, {len(problems)} problems (dataset store, 6 views)"
-    assert [line.strip() for line in lines[1:]] == problems
+    assert [line.strip() for line in lines[1:-1]] == problems
+    # damaged files: the last line says how to repair them
+    assert lines[-1].strip() == (f"note: repair: `sceneforge render bundled:toy {store_copy} --repair` re-renders "
+                                 "exactly the damaged shards (with the config the store records) and removes the "
+                                 "files no run wrote")
     quiet = CliRunner().invoke(cli, ["validate", str(store_copy), "--quiet"])
     assert quiet.exit_code == EXIT_FAILURES and quiet.output.strip().splitlines() == lines[:1]
 

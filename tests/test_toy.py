@@ -304,11 +304,15 @@ def test_a_house_failing_mid_write_leaves_no_partial_folder(tmp_path, monkeypatc
     assert load_house(tmp_path / "toy_0_000").id == "toy_0_000"
 
 
-def test_rewriting_a_house_replaces_it_whole(tmp_path):
-    (tmp_path / "toy_0_000").mkdir()
-    (tmp_path / "toy_0_000" / "stale.txt").write_text("from an older run")
+def test_a_house_folder_is_kept_when_it_holds_the_same_bytes_and_refused_otherwise(tmp_path):
     write_toy_houses(tmp_path, 1, 0)
-    assert not (tmp_path / "toy_0_000" / "stale.txt").exists()
+    written = {p: p.read_bytes() for p in (tmp_path / "toy_0_000").rglob("*") if p.is_file()}
+    write_toy_houses(tmp_path, 1, 0)  # the same seed and options: the same bytes, kept
+    assert {p: p.read_bytes() for p in (tmp_path / "toy_0_000").rglob("*") if p.is_file()} == written
+    (tmp_path / "toy_0_000" / "notes.txt").write_text("a user's file: nothing here made it")
+    with pytest.raises(SceneforgeError, match="toy_0_000: holds another house than toy_0_000 of seed 0"):
+        write_toy_houses(tmp_path, 1, 0)
+    assert (tmp_path / "toy_0_000" / "notes.txt").read_text() == "a user's file: nothing here made it"
     assert load_house(tmp_path / "toy_0_000").id == "toy_0_000"
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import SceneforgeError
+from ..errors import SceneforgeError, plural
 from .inputs import EvalView, GroundTruthMesh
 from .voxels import VoxelConfig, VoxelScore, score_voxels
 
@@ -28,13 +28,45 @@ def views_to_score(store, limit: int | None = None, houses: Collection[str] | No
     keep = np.ones(n, dtype=bool)
     if "valid" in store.names:
         keep &= np.asarray(store.array("valid")[:n], dtype=bool)
-    predicted = (getattr(store, "attrs", None) or {}).get("prediction", {}).get("views")
+    predicted = predicted_views(store)
     if predicted is not None:
-        keep &= np.isin(np.arange(n), np.asarray(predicted, dtype=np.int64))
+        keep &= np.isin(np.arange(n), predicted)
     if houses is not None:
         ids = np.array([str(h) for h in store.array("house_id")[:n]])
         keep &= np.isin(ids, np.array(sorted(houses), dtype=str))
     return np.flatnonzero(keep).tolist()
+
+
+def predicted_views(store) -> np.ndarray | None:
+    """(k,) int64 the views that a store of predictions predicted (its ``prediction``
+    attribute's ``views``; the others are blank), or None for a store of ground truth."""
+    predicted = (getattr(store, "attrs", None) or {}).get("prediction", {}).get("views")
+    return None if predicted is None else np.asarray(predicted, dtype=np.int64)
+
+
+def check_predicted(store, i: int) -> None:
+    """Raise :class:`SceneforgeError` when ``store`` holds predictions and view ``i`` is not
+    one of them (its arrays are blank), naming the views that are."""
+    predicted = predicted_views(store)
+    if predicted is None or i in predicted:
+        return
+    split = store.attrs["prediction"].get("split")
+    of = f" of the {split} split" if split and split != "all" else ""
+    raise SceneforgeError(f"view {i} was not predicted: the store predicts views {_runs(predicted, i)} "
+                          f"({plural(len(predicted), 'view')}{of})")
+
+
+def _runs(views: np.ndarray, near: int, most: int = 8) -> str:
+    """``views`` as runs of consecutive indices, ``"0-3, 8, 12-15"``; of many runs the
+    ``most`` around ``near``, the others as ``...``."""
+    views = np.unique(views)
+    if not len(views):
+        return "none"
+    starts = np.flatnonzero(np.diff(views, prepend=views[0] - 2) != 1)  # the first view starts a run
+    runs = [(int(views[a]), int(views[b - 1])) for a, b in zip(starts, [*starts[1:], len(views)])]
+    first = min(max(0, int(np.searchsorted([a for a, _ in runs], near)) - most // 2), max(0, len(runs) - most))
+    shown = [f"{a}" if a == b else f"{a}-{b}" for a, b in runs[first:first + most]]
+    return ", ".join(["..."] * (first > 0) + shown + ["..."] * (first + most < len(runs)))
 
 
 def empty_views(store, indices: Collection[int]) -> list[int]:

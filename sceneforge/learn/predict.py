@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import SceneforgeError
+from ..store.guard import check_apart, check_store_output
 from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers, object_pixels
@@ -182,6 +183,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     from sceneforge.store import StoreWriter, open_store
 
     t0 = time.perf_counter()
+    check_apart(out, "prediction store", [("input store", store), ("run", run), ("camera run", camera_run),
+                                          ("split file", split_file)])
+    check_store_output(out, "prediction", overwrite=overwrite)
     with StoreWriter(out) as writer:  # the store's lock, for the whole run
         if writer.exists() and not overwrite:
             raise SceneforgeError(f"{out} exists: pass --overwrite to replace it")
@@ -208,7 +212,15 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
         render_config = _prediction_config(source.config)
         n = len(source)
-        writer.create(render_config, source.attrs["houses_source"], n, replace=True)
+        prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
+                      "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
+                      "min_height": MIN_HEIGHT, "floor": floor, "min_object_probability": min_object_probability,
+                      "min_overhead_object_probability": min_overhead_object_probability,
+                      "split": split, "views": [int(i) for i in valid],
+                      "split_file": None if houses is None else str(chosen.path)}
+        # recorded from the start: an interrupted prediction store is still known as predict's
+        # (sceneforge.store.guard), so a later --overwrite may replace it and render may not
+        writer.create(render_config, source.attrs["houses_source"], n, replace=True, prediction=prediction)
         shards = _Shards(writer, render_config, source, valid)
         if progress:
             progress.start("predicting views", len(valid), "views")
@@ -224,12 +236,6 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
                     progress.advance(len(batch["index"]))
         shards.flush(final=True)
 
-        prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
-                      "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
-                      "min_height": MIN_HEIGHT, "floor": floor, "min_object_probability": min_object_probability,
-                      "min_overhead_object_probability": min_overhead_object_probability,
-                      "split": split, "views": [int(i) for i in valid],
-                      "split_file": None if houses is None else str(chosen.path)}
         writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                         failures=source.attrs["failures"], prediction=prediction)
     return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0, split,

@@ -48,6 +48,8 @@ from .train import load_run, resolve_device
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 #: the camera height above the floor, metres (the toy and PBRS cameras' eye height)
 DEFAULT_HEIGHT = 1.5
+#: the files written per photo NAME: NAME.npz, NAME.exr, NAME.png, NAME.ply
+OUTPUT_SUFFIXES = (".npz", ".exr", ".png", ".ply")
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,22 @@ def photo_paths(inputs: Sequence[str | Path]) -> list[Path]:
     if not paths:
         raise SceneforgeError("no image given")
     return paths
+
+
+def check_outputs(out: str | Path, names: Sequence[str], *, run, camera_run, images: Sequence[Path],
+                  overwrite: bool) -> None:
+    """Raise :class:`SceneforgeError` unless writing the files of photos ``names`` into the
+    folder ``out`` loses nothing it did not make (see :func:`reconstruct`)."""
+    from ..store.guard import check_apart, check_not_in_store
+
+    check_apart(out, "output folder", [("run", run), ("camera run", camera_run), *(("image", p) for p in images)])
+    check_not_in_store(out, "output folder")
+    there = [Path(out) / f"{name}{suffix}" for name in names for suffix in OUTPUT_SUFFIXES]
+    there = [p for p in there if p.exists()]
+    if there and not overwrite:
+        more = f" and {len(there) - 1} more" if len(there) > 1 else ""
+        raise SceneforgeError(f"{out}: already holds {there[0].name}{more}; pass --overwrite to replace the "
+                              "files of these photos, or choose another folder")
 
 
 def read_photo(path: Path) -> np.ndarray:
@@ -165,7 +183,8 @@ def reconstruct(run: str | Path, images: Sequence[str | Path], out: str | Path, 
                 camera: PhotoCamera | None = None, camera_run: str | Path | None = None,
                 resolution: int = 300, batch_size: int = 4, device: str = "auto",
                 floor_removal: str = "segmentation", min_object_probability: float | None = None,
-                min_overhead_object_probability: float | None = None, progress=None) -> list[Path]:
+                min_overhead_object_probability: float | None = None, overwrite: bool = False,
+                progress=None) -> list[Path]:
     """Reconstruct every photo of ``images`` (files or folders) with the overhead ``run``
     into the folder ``out`` (files: module docstring); the PLY paths written.
 
@@ -174,10 +193,14 @@ def reconstruct(run: str | Path, images: Sequence[str | Path], out: str | Path, 
     resolution : overhead image size, pixels
     min_object_probability, min_overhead_object_probability : as for
                  :func:`~sceneforge.learn.predict.predict` (None: the arg-max, the paper's)
-    Raises :class:`SceneforgeError` for a run that is not an overhead run, or unreadable images.
+    overwrite  : replace the files of these photos that ``out`` already holds (else refused)
+    Raises :class:`SceneforgeError` for a run that is not an overhead run, unreadable images,
+    or an ``out`` that would lose data: one of the inputs (or inside or holding one), inside a
+    store, or holding a file of these photos' names without ``overwrite``.
     """
     camera = camera or PhotoCamera()
     paths = photo_paths(images)
+    check_outputs(out, [p.stem for p in paths], run=run, camera_run=camera_run, images=paths, overwrite=overwrite)
     dev = resolve_device(device)
     config, nets = load_run(run, dev)
     if not get_stage(config.stage).uses_eft:

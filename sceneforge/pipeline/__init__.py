@@ -49,13 +49,14 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Protocol
 
 from ..store import StoreWriter, location_errors
+from ..store.guard import check_apart, check_store_output
 from .assign import Plan, ViewPlan
 from .executors import executor
 from .finalize import finalize_store
 from .inputs import InputChanges
 from .plan import check_camera_folder, plan_house, plan_houses
 from .shards import ShardTask, render_shard
-from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, write_error
+from .staging import CREATED_KEY, STAGING, identity, intact, marker_key, prepare, recorded_config, write_error
 
 if TYPE_CHECKING:
     from ..config import DatasetConfig
@@ -84,6 +85,8 @@ class RenderSummary:
                (``views_rendered`` views), the rate the progress bar shows
     changes  : the houses that changed since the store (or the unfinished run) was made,
                redone with ``update``; ``retried``: the failed houses retried
+    damaged  : the files of a complete store found not as written (their shards were
+               rendered again); ``removed``: the files no run wrote, removed
     """
 
     path: str
@@ -100,6 +103,8 @@ class RenderSummary:
     render_seconds: float = 0.0
     changes: InputChanges = InputChanges()
     retried: tuple[str, ...] = ()
+    damaged: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
 
 
 def render_dataset(
@@ -112,6 +117,7 @@ def render_dataset(
     overwrite: bool = False,
     update: bool = False,
     retry_failed: bool = False,
+    repair: bool = False,
     storage_options: dict | None = None,
     progress: Progress | None = None,
 ) -> RenderSummary:
@@ -123,17 +129,27 @@ def render_dataset(
     update       : when houses changed, were added or removed since the store (or the
                    unfinished run) was made, redo exactly those (else that is refused)
     retry_failed : plan and render the houses that failed again
-    Raises :class:`SceneforgeError` for an unusable destination, a store another run is
-    writing, changed houses without ``update``, or a failed write; houses that fail are
+    repair       : render with the config the store records (``config`` is not used). Any
+                   re-run of a complete store hashes its files against its manifest and
+                   renders again exactly the shards whose files are damaged or missing,
+                   removing the files no run wrote, so that it ends as a clean render
+    Raises :class:`SceneforgeError` for an unusable destination (one of the inputs, or
+    holding anything but this command's own dataset store: :mod:`sceneforge.store.guard`),
+    a store another run is writing, changed houses without ``update``, or a failed write; houses that fail are
     recorded in the store's failure log and the summary.
     """
     from ..houses import discover
 
     t_start = time.perf_counter()
+    check_apart(out, "store", [("houses", houses)])
+    check_store_output(out, "dataset", overwrite=overwrite, storage_options=storage_options)
+    writer = StoreWriter(out, storage_options)
+    if repair:
+        config = recorded_config(writer)
+    check_apart(out, "store", [("camera folder", config.cameras)])
     sources = discover(houses, config.houses.format)
     if config.cameras is not None:
         check_camera_folder(config.cameras, [s.id for s in sources])
-    writer = StoreWriter(out, storage_options)
     try:
         with writer, location_errors(writer.url):  # S3 gone mid-run: one line, as at the start
             prep = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite=overwrite,
@@ -143,7 +159,7 @@ def render_dataset(
                 writer.remove_partials()
                 attrs = writer.attrs()
                 return _summary(writer, attrs["houses"], attrs["failures"], attrs["views"], config, t_start,
-                                already_complete=True)
+                                prep=prep, already_complete=True)
             with executor(workers, scheduler) as run:
                 plan = Plan.from_records(plan_houses(writer, sources, config, run, progress))
                 created = writer.get_json(CREATED_KEY)
@@ -206,4 +222,5 @@ def _summary(writer, houses, failures, n_views, config, t_start, rendered: _Rend
         timings=rendered.timings if rendered else {}, already_complete=already_complete,
         views_rendered=rendered.views if rendered else 0, render_seconds=rendered.seconds if rendered else 0.0,
         changes=prep.changes if prep else InputChanges(), retried=prep.retried if prep else (),
+        damaged=prep.damaged if prep else (), removed=prep.removed if prep else (),
     )

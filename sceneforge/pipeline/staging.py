@@ -26,16 +26,15 @@ import hashlib
 import io
 import json
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator
+from typing import Iterator
 
 import numpy as np
 
-from ..errors import SceneforgeError
+from ..config import DatasetConfig
+from ..errors import DamagedStoreError, SceneforgeError
 from ..store import MESH_KINDS, SCHEMA_VERSION, StoreWriter, array_specs, shard_key
+from ..store.validate import FileDamage, file_damage
 from .inputs import InputChanges, changes
-
-if TYPE_CHECKING:
-    from ..config import DatasetConfig
 
 #: staging folder inside the store, removed when the run completes
 STAGING = "_staging"
@@ -81,11 +80,15 @@ def identity_differences(stored: dict, wanted: dict, limit: int = 3) -> str:
 @dataclass(frozen=True)
 class Preparation:
     """What :func:`prepare` found: ``state`` ``"new"``, ``"resume"`` or ``"complete"``, the
-    houses that changed since (planned again) and the failed houses retried."""
+    houses that changed since (planned again), the failed houses retried, and the files of
+    a complete store that were not as written (``damaged``: rendered again; ``removed``:
+    no run wrote them)."""
 
     state: str
     changes: InputChanges = InputChanges()
     retried: tuple[str, ...] = ()
+    damaged: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
 
 
 def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, overwrite: bool = False,
@@ -128,16 +131,35 @@ def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, ov
         found = changes(attrs["houses"], house_ids)
         _refuse_unless(found, update, writer, "this store was rendered")
         failed = {f["house"] for f in attrs["failures"]} & set(house_ids) if retry_failed else set()
-        if not found and not failed:
-            return Preparation("complete")
-        reopen(writer, attrs, run_identity, house_ids, found.redo | failed)
-        return Preparation("resume", found, tuple(sorted(failed)))
+        damage = file_damage(writer, attrs, DatasetConfig.from_dict(attrs["config"], recorded=True))
+        for key in damage.unexpected:  # no run wrote them: not this store's
+            writer.rm(key)
+        shards = damaged_shards(damage, attrs["views"], attrs["config"]["store"]["views_per_shard"])
+        if not found and not failed and not shards:
+            return Preparation("complete", removed=tuple(damage.unexpected))
+        reopen(writer, attrs, run_identity, house_ids, found.redo | failed, shards)
+        lost = tuple(damage.missing + damage.damaged) or ((damage.manifest,) if damage.manifest else ())
+        return Preparation("resume", found, tuple(sorted(failed)), lost, tuple(damage.unexpected))
     if writer.is_file():
         raise SceneforgeError(f"{writer.url}: is a file, not a folder")
     if not writer.is_empty():
         raise SceneforgeError(f"{writer.url}: exists and is not empty; choose another path")
     writer.put_json(RUN_KEY, {**run_identity, "house_ids": house_ids})
     return Preparation("new")
+
+
+def recorded_config(writer: StoreWriter) -> "DatasetConfig":
+    """The config the store at ``writer`` (or the unfinished run there) was rendered with."""
+    started = writer.get_json(RUN_KEY)
+    if started is not None:
+        doc = started["config"]
+    elif writer.exists("zarr.json"):
+        doc = writer.attrs().get("config")
+    else:
+        doc = None
+    if doc is None:
+        raise SceneforgeError(f"{writer.url}: no store that sceneforge render wrote, so nothing to repair")
+    return DatasetConfig.from_dict(doc, what=f"{writer.url} config", recorded=True)
 
 
 def _refuse_unless(found: InputChanges, update: bool, writer: StoreWriter, since: str) -> None:
@@ -157,20 +179,39 @@ def _drop_markers_with_failures(writer: StoreWriter) -> None:
                 writer.rm(key)
 
 
-def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list[str], redo: set[str]) -> None:
+def damaged_shards(damage: FileDamage, n_views: int, per_shard: int) -> set[int]:
+    """The shards to render again for the files ``damage`` found: those of the missing or
+    damaged per-view shard files; every shard when the manifest or a mesh array's file is
+    not as written (the mesh arrays are made from every shard's meshes)."""
+    every = set(range(-(-n_views // per_shard)))
+    if damage.manifest:
+        return every
+    shards = set()
+    for key in damage.missing + damage.damaged:
+        array, coords = key.rsplit("/c/", 1)
+        if array.startswith("mesh/"):
+            return every
+        shards.add(int(coords.split("/")[0]))
+    return shards
+
+
+def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list[str], redo: set[str],
+           damaged: set[int] = frozenset()) -> None:
     """Turn the complete store of ``attrs`` back into a run to resume that plans the houses
     ``redo`` (and those of ``house_ids`` it does not have) again: the other houses' records
     are rebuilt from the store (provenance, failure log and cameras) and staged, and each
     shard of those houses only is staged with its marker and mesh part, as its run wrote
-    them, so it is kept wherever the new plan puts the same views at the same indices."""
-    from ..config import DatasetConfig
+    them, so it is kept wherever the new plan puts the same views at the same indices.
+    The shards ``damaged`` are not staged (rendered again); a house whose cameras are in a
+    damaged shard is planned again (the same cameras: planning is seeded)."""
     from ..store import open_store
     from .assign import Plan
 
     store = open_store(writer.url, writer.storage_options or None)
     config = DatasetConfig.from_dict(attrs["config"], what=f"{writer.url} config", recorded=True)
     house_failures = {f["house"]: f for f in attrs["failures"] if f["view"] is None}
-    camera_id, K, pose = (np.asarray(store.array(name)[:]) for name in ("camera_id", "K", "cam_to_world"))
+    camera_id, K, pose, lost = _stored_cameras(store, config.store.views_per_shard)
+    redo = redo | {h["id"] for h in attrs["houses"] if h["status"] == "ok" and lost[slice(*h["views"])].any()}
     records = []
     for h in attrs["houses"]:
         rec = {k: v for k, v in h.items() if k not in ("status", "views")}
@@ -187,7 +228,7 @@ def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list
             writer.put_json(house_key(rec["id"]), rec)
     arrays = {spec.name: store.array(spec.name) for spec in array_specs(config, per_view=True)}
     for s, (a, b) in enumerate(old.shards(config.store.views_per_shard)):
-        if any(old.houses[v.house]["id"] not in kept for v in old.views[a:b]):
+        if s in damaged or any(old.houses[v.house]["id"] not in kept for v in old.views[a:b]):
             continue
         marker = {"shard": s, "views": [a, b], "plan": old.digest(a, b),
                   "files": {key: writer.sha256(key) for key in (shard_key(arr, s) for arr in arrays.values())},
@@ -200,6 +241,24 @@ def reopen(writer: StoreWriter, attrs: dict, run_identity: dict, house_ids: list
     writer.put_json(CREATED_KEY, {"views": attrs["views"]})
     writer.put_json(RUN_KEY, {**run_identity, "house_ids": house_ids})
     writer.mark_incomplete()
+
+
+def _stored_cameras(store, per_shard: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``camera_id (N,)``, ``K (N, 3, 3)`` and ``cam_to_world (N, 4, 4)`` of a store, read
+    shard by shard, and ``lost (N,) bool``: the views of the shards that cannot be read."""
+    names = ("camera_id", "K", "cam_to_world")
+    n = len(store)
+    out = [np.zeros((n, *store.array(name).shape[1:]), store.array(name).dtype) for name in names]
+    lost = np.zeros(n, bool)
+    for a in range(0, n, per_shard):
+        try:
+            parts = [np.asarray(store.array(name)[a: a + per_shard]) for name in names]
+        except DamagedStoreError:
+            lost[a: a + per_shard] = True
+            continue
+        for array, part in zip(out, parts):
+            array[a: a + per_shard] = part
+    return (*out, lost)
 
 
 def _stored_mesh_part(store, start: int, stop: int) -> dict[str, np.ndarray]:

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import warnings
 from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
-from ..errors import MissingDependencyError, SceneforgeError
+from ..errors import DamagedStoreError, MissingDependencyError, SceneforgeError
 from .layout import MESH_KINDS, layout
 from .location import errors, open_location, options_for
 
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
     import zarr
 
     from ..config import DatasetConfig
+    from .location import Location
 
 
 def open_group(path: str, mode: str = "r", storage_options: dict | None = None) -> "zarr.Group":
@@ -35,6 +37,78 @@ def open_group(path: str, mode: str = "r", storage_options: dict | None = None) 
         raise place.missing() from None
 
 
+class CheckedArray:
+    """A zarr array of a store whose reads fail as one line (:class:`DamagedStoreError`)
+    when a file is not as written: one that zarr cannot decode (truncated, zeroed, changed)
+    or one the manifest lists that is gone (zarr would read fill values: garbage, silently).
+    Everything else is the zarr array's (``shape``, ``dtype``, ``shards``, ...)."""
+
+    def __init__(self, array: "zarr.Array", store: "SceneStore"):
+        self._array, self._store = array, store
+        self._present: set[int] = set()  # shards whose file was found where the manifest lists one
+
+    def __getattr__(self, name):
+        return getattr(self._array, name)
+
+    def __len__(self) -> int:
+        return len(self._array)
+
+    def __getitem__(self, selection):
+        shards = self._shards(selection)
+        try:
+            out = self._array[selection]
+        except (IndexError, TypeError, OSError):
+            raise  # a bad selection is the caller's; an unreachable store says so itself
+        except Exception as e:  # zarr's codecs raise ValueError, RuntimeError, ... for a torn file
+            reason = str(e).split(". ")[0]  # zarr's checksum error goes on with the raw bytes
+            raise self._damaged(self._first_broken(shards), f"cannot be decoded ({reason})") from None
+        for shard in shards - self._present:
+            if not self._store.file_present(self._key(shard)):
+                raise self._damaged(shard, "is missing")
+            self._present.add(shard)
+        return out
+
+    def _shards(self, selection) -> set[int]:
+        """The shards (along the first axis) that ``selection`` reads."""
+        n, per = self._array.shape[0], self._array.shards[0] if self._array.shards else self._array.chunks[0]
+        first = selection[0] if isinstance(selection, tuple) and selection else selection
+        if isinstance(first, (int, np.integer)):
+            rows = range(int(first) % n, int(first) % n + 1) if n else range(0)
+        elif isinstance(first, slice):
+            rows = range(*first.indices(n))
+        else:
+            rows = range(n)
+        if not rows:
+            return set()
+        return set(range(rows[0] // per, rows[-1] // per + 1)) if rows.step == 1 else {r // per for r in rows}
+
+    def _key(self, shard: int) -> str:
+        from .writer import shard_key
+
+        return shard_key(self._array, shard)
+
+    def _first_broken(self, shards: set[int]) -> int | None:
+        per = self._array.shards[0] if self._array.shards else self._array.chunks[0]
+        for shard in sorted(shards):
+            try:
+                self._array[shard * per: (shard + 1) * per]
+            except Exception:
+                return shard
+        return None
+
+    def _damaged(self, shard: int | None, problem: str) -> DamagedStoreError:
+        name, where = self._array.path, self._store.where
+        if shard is None:
+            return DamagedStoreError(f"{where}: {name} {problem}; run `sceneforge validate {where}`: it names the "
+                                     "damaged files and how to repair them")
+        per = self._array.shards[0] if self._array.shards else self._array.chunks[0]
+        a, b = shard * per, min((shard + 1) * per, self._array.shape[0]) - 1
+        rows = "views" if self._array.path in layout() and layout()[self._array.path].per_view else "rows"
+        return DamagedStoreError(f"{where}: {name} of {rows} {a}-{b}: the shard file {self._key(shard)} {problem}; "
+                                 f"run `sceneforge validate {where}`: it names every damaged file and how to "
+                                 "repair them")
+
+
 class SceneStore:
     """A store opened for reading; numpy arrays out, no PyTorch.
 
@@ -42,15 +116,33 @@ class SceneStore:
     uint8``, ``depth (5, H, W) float32``, ..., ``house_id`` and ``camera_id`` as 0-d
     arrays); ``store.mesh(i)`` its ground-truth meshes; ``store.array(name)`` a lazily sliced
     zarr array; ``store.attrs`` the group attributes (config, provenance, failure log).
+
+    Opened by :func:`open_store` (``place`` given), a read of a file that is not as written
+    raises :class:`DamagedStoreError`, one line naming the array, views and shard file
+    (:class:`CheckedArray`); without ``place`` (the validator, which reports every file
+    itself) arrays are zarr's own.
     """
 
-    def __init__(self, group: "zarr.Group"):
+    def __init__(self, group: "zarr.Group", place: "Location | None" = None):
         self.group = group
+        self.place = place
+        #: how messages name the store: the path or URL it was opened with
+        self.where = place.url if place is not None else str(group.store)
         self.attrs: dict = group.attrs.asdict()
         self._arrays: dict[str, "zarr.Array"] = {}
+        self._manifest: dict[str, str | None] | None = None
         present = {name for name, _ in arrays_of(group)}
         self.names: tuple[str, ...] = tuple(s.name for s in layout().values() if s.per_view and s.name in present)
         self.has_mesh = all(f"mesh/{k}/vertices" in present for k in MESH_KINDS)
+
+    def file_present(self, key: str) -> bool:
+        """The file ``key`` is there, or the store's manifest records none (a shard of fill
+        values only has no file; so do stores written before manifests)."""
+        if self._manifest is None:
+            record = self.attrs.get("manifest")
+            data = record and self.place.fs.cat_file(f"{self.place.root}/{record['file']}")
+            self._manifest = json.loads(data)["files"] if data else {}
+        return self._manifest.get(key) is None or self.place.fs.exists(f"{self.place.root}/{key}")
 
     def __len__(self) -> int:
         return int(self.attrs["views"])
@@ -70,7 +162,8 @@ class SceneStore:
         if name not in self._arrays:
             if name not in layout():
                 raise KeyError(f"no array {name!r} in the store layout; per-view arrays: {', '.join(self.names)}")
-            self._arrays[name] = self.group[name]
+            array = self.group[name]
+            self._arrays[name] = array if self.place is None else CheckedArray(array, self)
         return self._arrays[name]
 
     def _index(self, i: int) -> int:
@@ -140,6 +233,7 @@ def open_store(path: str, storage_options: dict | None = None, *, allow_incomple
     that writes it has not finished (unless ``allow_incomplete``).
     """
     group = open_group(path, "r", storage_options)
+    place = open_location(str(path), storage_options)
     if "schema_version" not in group.attrs:
         raise SceneforgeError(f"{path}: not a sceneforge store (no schema_version attribute)")
     if not group.attrs.get("complete") and not allow_incomplete:
@@ -147,7 +241,7 @@ def open_store(path: str, storage_options: dict | None = None, *, allow_incomple
             f"{path}: the store is incomplete (a render run is in progress or was interrupted); "
             "run the same command again to finish it"
         )
-    return SceneStore(group)
+    return SceneStore(group, place)
 
 
 def array_digests(path: str, storage_options: dict | None = None) -> dict[str, str]:

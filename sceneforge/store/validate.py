@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -21,6 +21,10 @@ if TYPE_CHECKING:
     import zarr
 
     from ..config import DatasetConfig
+
+
+#: the problem of a shard zarr cannot decode
+UNDECODABLE = "cannot be decoded"
 
 
 def describe(group: "zarr.Group") -> dict:
@@ -47,7 +51,9 @@ class StoreCheck:
 
     kind     : ``"dataset"`` (written by render) or ``"prediction"`` (by predict)
     problems : one line each, most telling first (empty: valid)
-    notes    : what was not checked, and why
+    notes    : what was not checked, and why; for damaged files, how to repair them
+    prediction : a prediction store's ``prediction`` attribute (what predict recorded: the
+               ``views`` it predicted, of the split ``split``); None for a dataset store
     """
 
     path: str
@@ -56,6 +62,7 @@ class StoreCheck:
     complete: bool
     problems: list[str]
     notes: list[str]
+    prediction: dict | None = None
 
     @property
     def valid(self) -> bool:
@@ -66,7 +73,12 @@ class StoreCheck:
         if not self.complete:
             return (f"{self.path}: incomplete: a run writing it is in progress or was interrupted; run the same "
                     "command again to finish it")
-        what = f"{self.kind} store, {self.views} view{'s' if self.views != 1 else ''}"
+        what = f"{self.kind} store, {plural(self.views, 'view')}"
+        predicted = (self.prediction or {}).get("views")
+        if isinstance(predicted, list):  # the other views of a prediction store are blank: not predictions
+            split = self.prediction.get("split")
+            what = f"prediction store, {plural(len(predicted), 'predicted view')} of {self.views}"
+            what += f", split {split}" if split else ""
         if self.valid:
             return f"{self.path}: valid ({what})"
         n = len(self.problems)
@@ -87,7 +99,8 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
       written (a shard that is all fill values has no file, which the manifest records),
       none that the run did not write, no staging folder or temporary files left;
     - every shard decodable;
-    - the attributes consistent with the arrays (view ranges, ids, the failure log);
+    - the attributes consistent with the arrays (view ranges, ids, the failure log, the views
+      a prediction store predicted);
     - content: cameras finite and rigid, classes in 0..40, failed views blank; in a dataset
       store also the ground-truth rules (M1 = M2, M3 = M4, D3 only after D1, depths
       ordered and >= 0, classes and instances set exactly where a layer is), which a
@@ -105,7 +118,7 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
     attrs = doc["attributes"]
     kind = "prediction" if "prediction" in attrs else "dataset"
     n = attrs.get("views", 0) if isinstance(attrs.get("views"), int) else 0
-    check = StoreCheck(str(path), kind, n, bool(attrs.get("complete", True)), [], [])
+    check = StoreCheck(str(path), kind, n, bool(attrs.get("complete", True)), [], [], attrs.get("prediction"))
     check.problems += schemas.errors(doc, "store")
     if check.problems:
         return check
@@ -128,13 +141,27 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
     if check.problems:
         return check
     files = StoreWriter(str(path), storage_options)
-    check.problems += _check_files(files, attrs, config, check.notes)
+    file_problems = _check_files(files, attrs, config, check.notes)
+    check.problems += file_problems
     store = SceneStore(group)
     problems, layers = _check_views(store, config, kind == "prediction", check.notes)
     check.problems += problems
     if store.has_mesh:
         check.problems += _check_meshes(store, layers)
+    if file_problems or any(UNDECODABLE in p for p in problems):
+        check.notes.append(repair_hint(str(path), attrs))
     return check
+
+
+def repair_hint(path: str, attrs: dict) -> str:
+    """How to repair the store at ``path`` (of group attributes ``attrs``): the command that
+    wrote it, run again."""
+    prediction = attrs.get("prediction")
+    if prediction:
+        return (f"repair: predict again, `sceneforge predict {prediction.get('run', 'RUN')} "
+                f"{prediction.get('source', 'STORE')} {path} --overwrite` (with the options it was predicted with)")
+    return (f"repair: `sceneforge render {attrs['houses_source']} {path} --repair` re-renders exactly the damaged "
+            "shards (with the config the store records) and removes the files no run wrote")
 
 
 def _check_files(files: "StoreWriter", attrs: dict, config: "DatasetConfig", notes: list[str]) -> list[str]:
@@ -151,25 +178,54 @@ def _check_files(files: "StoreWriter", attrs: dict, config: "DatasetConfig", not
     if record is None:
         notes.append("no manifest (a store written before sceneforge recorded one): file hashes not checked")
         return problems
-    data = files.get(record["file"])
-    if data is None or hashlib.sha256(data).hexdigest() != record["sha256"]:
-        return problems + [f"{record['file']}: {'missing' if data is None else 'not the one written with the store'}"]
-    manifest = json.loads(data)["files"]
-    missing, damaged, unexpected = [], [], []
-    for key, digest in manifest.items():
-        now = files.sha256(key)
-        if now != digest:
-            (missing if now is None else unexpected if digest is None else damaged).append(key)
-    listed = set(manifest)
-    for spec in array_specs(config):
-        unexpected += [key for key in files._chunk_files(spec.name) if key not in listed]
-    for what, keys in (("missing (written by the run, gone since)", missing),
-                       ("damaged (not the bytes written: truncated or changed)", damaged),
-                       ("not written by the run", unexpected)):
+    found = file_damage(files, attrs, config)
+    if found.manifest:
+        return problems + [found.manifest]
+    for what, keys in (("missing (written by the run, gone since)", found.missing),
+                       ("damaged (not the bytes written: truncated or changed)", found.damaged),
+                       ("not written by the run", found.unexpected)):
         if keys:
             shown = ", ".join(sorted(keys)[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
             problems.append(f"{len(keys)} file(s) {what}: {shown}")
     return problems
+
+
+@dataclass
+class FileDamage:
+    """A store's files against its manifest: the keys ``missing`` (written, gone since),
+    ``damaged`` (not the bytes written) and ``unexpected`` (not written by the run);
+    ``manifest``: the problem of the manifest itself (missing or changed: nothing else is
+    known then), else empty. No manifest at all (older stores): nothing found."""
+
+    missing: list[str] = field(default_factory=list)
+    damaged: list[str] = field(default_factory=list)
+    unexpected: list[str] = field(default_factory=list)
+    manifest: str = ""
+
+    def __bool__(self) -> bool:
+        return bool(self.missing or self.damaged or self.unexpected or self.manifest)
+
+
+def file_damage(files: "StoreWriter", attrs: dict, config: "DatasetConfig") -> FileDamage:
+    """Hash every file the manifest of the store (``attrs``, its group attributes) lists and
+    list the array files it does not: what :func:`check_store` reports and ``sceneforge
+    render`` repairs."""
+    record = attrs.get("manifest")
+    if record is None:
+        return FileDamage()
+    data = files.get(record["file"])
+    if data is None or hashlib.sha256(data).hexdigest() != record["sha256"]:
+        return FileDamage(manifest=f"{record['file']}: {'missing' if data is None else 'not the one written with the store'}")
+    manifest = json.loads(data)["files"]
+    found = FileDamage()
+    for key, digest in manifest.items():
+        now = files.sha256(key)
+        if now != digest:
+            (found.missing if now is None else found.unexpected if digest is None else found.damaged).append(key)
+    listed = set(manifest)
+    for spec in array_specs(config):
+        found.unexpected += [key for key in files._chunk_files(spec.name) if key not in listed]
+    return found
 
 
 def _check_layout(arrays: dict, config: "DatasetConfig", n: int) -> list[str]:
@@ -212,6 +268,10 @@ def _check_attrs(attrs: dict, n: int) -> list[str]:
     for f in attrs["failures"]:
         if f["house"] not in ids:
             problems.append(f"failures: house {f['house']!r} is not in the houses list")
+    predicted = (attrs.get("prediction") or {}).get("views")
+    in_range = isinstance(predicted, list) and all(isinstance(i, int) and 0 <= i < n for i in predicted)
+    if predicted is not None and not (in_range and len(set(predicted)) == len(predicted)):
+        problems.append(f"prediction: views is not a list of distinct view indices in 0..{n - 1}")
     return problems
 
 
@@ -273,7 +333,7 @@ def _check_views(store: SceneStore, config: "DatasetConfig", prediction: bool,
             try:
                 a[name] = store.array(name)[start:stop]
             except Exception as e:  # a damaged shard: zarr's codecs raise many kinds
-                problems.append(f"{name}: shard {start // step} (views {start}-{stop - 1}) cannot be decoded "
+                problems.append(f"{name}: shard {start // step} (views {start}-{stop - 1}) {UNDECODABLE} "
                                 f"({type(e).__name__}: {e})")
                 broken = True
         if broken:

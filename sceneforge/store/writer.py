@@ -225,15 +225,16 @@ class StoreWriter:
 
     # ------------------------------------------------------------------------ the arrays
 
-    def create(self, config: "DatasetConfig", houses_source: str, n_views: int, *, replace: bool = False) -> None:
+    def create(self, config: "DatasetConfig", houses_source: str, n_views: int, *, replace: bool = False,
+               **extra) -> None:
         """(Re)create every per-view array of ``n_views`` views, empty, and the attributes
-        known so far (:func:`base_attrs`, ``complete`` false).
+        known so far (:func:`base_attrs`, ``complete`` false, and ``extra``, e.g. ``prediction``).
 
         replace : first remove whatever the location holds (else arrays are recreated in place)
         """
         group = self._open("w" if replace else "a")
         create_arrays(group, config, n_views)
-        group.attrs.put(base_attrs(config, houses_source, n_views))
+        group.attrs.put({**base_attrs(config, houses_source, n_views), **extra})
         self._group, self._arrays = group, {}
 
     def write_shard(self, shard: int, views: list[dict[str, np.ndarray]]) -> list[str]:
