@@ -6,7 +6,8 @@
 #
 # renders HOUSES (a folder of houses, e.g. `sceneforge toy-houses houses --count 40 --seed 1`)
 # into WORKDIR/gt.zarr, trains the depth, segmentation and overhead stages on the training
-# houses of a split of whole houses (validation and test houses are never trained on),
+# houses of a split of whole houses (validation and test houses are never trained on; the
+# split is saved in WORKDIR/gt.split.json),
 # predicts the test houses into WORKDIR/pred.zarr and scores them with `sceneforge evaluate
 # predictions` (WORKDIR/evaluation.json: the paper's table and, under "learning", each score
 # of the model beside a trivial predictor's). The settings are the config files in

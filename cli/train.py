@@ -97,11 +97,13 @@ def train(config, run_dir, device, workers, resume, tensorboard, wandb):
     Train `depth` and `seg` first, then `overhead` and `camera`, which read the frozen
     frontal runs (default: runs/depth and runs/seg). The first run on a set of stores
     splits their houses into train, validation and test (with --split-seed, not --seed)
-    and saves the split (default: split.json beside the first store); every later run,
+    and saves the split beside the first store in a file named by the stores (a.split.json
+    for a.zarr; several stores: a+N.HASH.split.json) or in --split-file; every later run,
     `predict` and `evaluate` read it. Adam, with the paper's learning rate
     and batch size by default. The run folder gets the resolved config (reload it with --config
-    RUN/config.json), the house split, a checkpoint (--resume continues from it), the
-    metrics as CSV and a loss-curve PNG at the end.
+    RUN/config.json), the house split, a checkpoint (saved on Ctrl-C too; --resume continues
+    from it), the metrics as CSV and a loss-curve PNG at the end. It must be a new, empty or
+    training run folder apart from the stores, the frozen runs and the split file.
 
     \b
     Several GPUs: one process per GPU, started by torchrun, e.g. on 8 GPUs

@@ -98,7 +98,8 @@ class SplitConfig:
     #: seed of the shuffle that assigns houses to splits (its own: not the training seed)
     seed: int = 0
     #: the split file, written by the first run on the stores and read by every later one;
-    #: None = split.json beside the first store
+    #: None = the stores' own, beside the first: a.split.json for a.zarr (several stores:
+    #: a+N.HASH.split.json)
     file: str | None = None
 
     def __post_init__(self):

@@ -4,7 +4,8 @@
 A split belongs to the data, not to a run: houses are assigned to ``train``, ``val`` and
 ``test`` with the split's own seed (:class:`~sceneforge.learn.config.SplitConfig`, not the
 training seed), the first time any stage trains on the stores, and written to a split file
-(``split.json`` beside the first store unless another is given)::
+(:func:`default_split_file`, named by the stores and beside the first, unless another is
+given: ``/data/a.split.json`` for ``/data/a.zarr``)::
 
     {"version": 1, "val_fraction": 0.1, "test_fraction": 0.1, "seed": 0,
      "stores": ["/data/a.zarr"], "train": ["h0", ...], "val": [...], "test": [...]}
@@ -16,8 +17,10 @@ overhead run never validates on its frozen nets' training houses, and ``predict`
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,15 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneforgeError
-from ..store.location import beside, read_file, resolve, write_file
+from ..store.location import beside, is_url, read_file, resolve, write_file
 from .config import SplitConfig
 
 #: the splits of the houses
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 #: what ``predict --split`` and ``evaluate --split`` take: a split or every view
 SPLIT_CHOICES: tuple[str, ...] = (*SPLITS, "all")
-#: the split file's name beside the stores
-SPLIT_FILE = "split.json"
+#: the split file of earlier versions, one per folder: read only for the stores it records
+LEGACY_SPLIT_FILE = "split.json"
 _VERSION = 1
 _OPTION = {"val": "--val-fraction", "test": "--test-fraction"}
 _WHAT = {"val": "validation", "test": "test"}
@@ -51,10 +54,39 @@ def split_houses(house_ids: Sequence[str], config: SplitConfig | None = None) ->
             "train": sorted(order[n_val + n_test:])}
 
 
+def split_file_name(stores: Sequence[str]) -> str:
+    """The name of the split file of ``stores``: ``a.split.json`` for the one store
+    ``a.zarr`` (``.zarr`` dropped); for several, the first's name, ``+`` the number of the
+    others and 8 hex digits of the SHA-256 of the list (``a+2.5f3c0e1d.split.json``), so no
+    other list of stores shares the file. The list is hashed as the stores' paths relative
+    to the first store's folder (URLs as written): the name stays when that folder moves
+    with its stores."""
+    first = str(stores[0]).rstrip("/")
+    name = first.rsplit("/", 1)[-1] if is_url(first) else Path(resolve(first)).name
+    name = name.removesuffix(".zarr")
+    if len(stores) == 1:
+        return f"{name}.split.json"
+    home = None if is_url(first) else str(Path(resolve(first)).parent)
+    paths = [s if home is None or is_url(s) else os.path.relpath(s, home) for s in map(resolve, stores)]
+    digest = hashlib.sha256("\n".join(paths).encode()).hexdigest()[:8]
+    return f"{name}+{len(stores) - 1}.{digest}.split.json"
+
+
 def default_split_file(stores: Sequence[str]) -> str:
-    """``split.json`` beside the first store (absolute; on its filesystem: beside
-    ``s3://bucket/a.zarr`` it is ``s3://bucket/split.json``)."""
-    return beside(stores[0], SPLIT_FILE)
+    """The split file of ``stores`` when none is given: :func:`split_file_name` beside the
+    first store (absolute; on its filesystem: ``s3://bucket/a.split.json`` for
+    ``s3://bucket/a.zarr``). Until that file exists, a :data:`LEGACY_SPLIT_FILE` there that
+    records exactly these stores is theirs (the runs and predictions of earlier versions
+    keep their split); one of other stores is never read."""
+    path = beside(stores[0], split_file_name(stores))
+    if read_file(path) is not None:
+        return path
+    legacy = beside(stores[0], LEGACY_SPLIT_FILE)
+    try:
+        recorded = read_split(legacy).stores
+    except SceneforgeError:  # none there, or a file of that name that is not a split
+        return path
+    return legacy if list(map(resolve, recorded)) == list(map(resolve, stores)) else path
 
 
 @dataclass(frozen=True)
@@ -125,8 +157,8 @@ def read_split(path: str | Path) -> HouseSplit:
 
 
 def fixed_split(house_ids: Sequence[str], stores: Sequence[str], config: SplitConfig) -> HouseSplit:
-    """The split of the stores' houses saved in ``config.file`` (default: beside the first
-    store), drawn and written there if the file does not exist yet.
+    """The split of the stores' houses saved in ``config.file`` (default:
+    :func:`default_split_file`), drawn and written there if the file does not exist yet.
 
     Raises :class:`SceneforgeError` when the saved split was drawn with other fractions or
     another seed than ``config`` asks for, or does not hold every one of the houses.

@@ -22,7 +22,13 @@ A run lives in one folder::
     RUN/feature_cache/     the overhead stage's input per view (:mod:`.cache`)
 
 ``train(config, run)`` with ``resume=True`` continues an interrupted run from its
-checkpoint with the same data order (a seeded permutation per epoch).
+checkpoint with the same data order (a seeded permutation per epoch). Ctrl-C or SIGTERM
+saves the checkpoint of the last whole step first (:class:`~.trainer.EpochLoop`).
+
+The run folder holds only what training writes: ``train`` refuses, before writing anything,
+a folder that is, holds or lies inside one of its inputs (a store, a frozen run, the split
+file) or lies inside any store, and a non-empty folder that is not a training run (no
+readable ``config.json``). A run with no checkpoint never took a step and starts again.
 
 Fast by default: DataLoader workers (:func:`.trainer.default_workers`), channels-last
 nets and images, bf16 autocast and ``cudnn.benchmark`` on a GPU (``config.amp``); under ``torchrun`` one
@@ -42,7 +48,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from ..errors import MissingDependencyError, SceneforgeError
+from ..errors import Interrupted, MissingDependencyError, SceneforgeError
+from ..store.guard import check_apart, check_not_in_store
 from ..store.location import resolve
 from .cache import cached_datasets
 from .config import STAGES, TrainConfig  # noqa: F401  (re-exported: the config needs no torch)
@@ -189,17 +196,40 @@ def plot_loss_curve(run: str | Path) -> Path:
 
 def _absolute_runs(config: TrainConfig) -> TrainConfig:
     """The frozen runs and the split file as absolute paths: found again from any working
-    directory (the split file's default, beside the first store, written out)."""
+    directory (the split file's default, :func:`~.split.default_split_file`, written out)."""
     split_file = config.split.file if config.split.file is not None else default_split_file(config.stores)
     return replace(config, depth_run=config.depth_run and str(Path(config.depth_run).resolve()),
                    seg_run=config.seg_run and str(Path(config.seg_run).resolve()),
                    split=replace(config.split, file=resolve(split_file)))
 
 
+def _is_run(run: Path) -> bool:
+    """Whether the folder holds a training run (a readable ``config.json``)."""
+    try:
+        read_config(run)
+    except SceneforgeError:
+        return False
+    return True
+
+
+def _check_run_folder(config: TrainConfig, run: Path) -> None:
+    """Raise :class:`SceneforgeError` for a run folder training may not write into: one
+    that is, holds or lies inside an input (``config`` with absolute paths) or lies inside
+    a store, and a file or non-empty folder that is not a training run."""
+    check_not_in_store(run, "run folder")
+    check_apart(run, "run folder", [*(("input store", s) for s in config.stores), ("depth run", config.depth_run),
+                                    ("seg run", config.seg_run), ("split file", config.split.file)])
+    if run.exists() and not _is_run(run) and (not run.is_dir() or any(run.iterdir())):
+        raise SceneforgeError(f"{run}: holds files that are not a training run (no readable config.json); "
+                              "choose a new or empty run folder")
+
+
 def _prepare_run(config: TrainConfig, run: Path, resume: bool, device: torch.device) -> TrainConfig:
-    """Check the run folder; with ``resume``, the config must be the saved one (epochs and
-    max_steps may change) and that is what the run continues with. ``amp`` is resolved on
-    ``device`` (what ``auto`` means there) before it is saved or compared."""
+    """Check the run folder (:func:`_check_run_folder`); with ``resume``, the config must be
+    the saved one (epochs and max_steps may change) and that is what the run continues
+    with. ``amp`` is resolved on ``device`` (what ``auto`` means there) before it is saved
+    or compared."""
+    _check_run_folder(config, run)
     config = replace(config, amp=resolve_amp(config.amp, device))
     has_checkpoint = (run / CHECKPOINT).exists()
     if not resume:
@@ -275,8 +305,10 @@ def train(
     Under torchrun (``WORLD_SIZE`` > 1 in the environment, :mod:`.distributed`) every
     process calls it; rank 0 alone writes the run folder and reports progress, and every
     process returns the same :class:`TrainResult`.
-    Raises :class:`SceneforgeError` for unusable stores, a missing frozen run, or a run
-    folder that already holds a run (without ``resume``).
+    Raises :class:`SceneforgeError` for unusable stores, a missing frozen run, a run folder
+    that already holds a run (without ``resume``) or that training may not write into
+    (module docstring); :class:`~sceneforge.errors.Interrupted` on Ctrl-C (SIGTERM in the
+    CLI), saying whether to run it again with ``--resume`` or without.
     """
     if importlib.util.find_spec("matplotlib") is None:
         raise MissingDependencyError("matplotlib", "the loss curve of a training run",
@@ -287,9 +319,23 @@ def train(
     try:
         return _train(config, Path(run), dev, dist, default_workers(dist.local_world_size) if workers is None
                       else workers, resume, tensorboard, wandb, progress if dist.is_main else None)
+    except KeyboardInterrupt:
+        if dist.is_main:  # the one that saves the checkpoint alone knows whether there is one
+            raise _interrupted(Path(run)) from None
+        raise
     finally:
         if started:
             dist.stop()
+
+
+def _interrupted(run: Path) -> Interrupted:
+    """What to run after an interrupt: ``--resume`` from the checkpoint the run saved, or,
+    before its first step, the same command again."""
+    checkpoint = Checkpoint(run / CHECKPOINT)
+    if checkpoint.exists():
+        return Interrupted(f"run it again with --resume to continue from step {checkpoint.step()}")
+    return Interrupted("no step was taken, so there is nothing to resume: run the same command again "
+                       "(without --resume)")
 
 
 def _train(config: TrainConfig, run: Path, dev: torch.device, dist: Distributed, workers: int, resume: bool,

@@ -14,9 +14,10 @@
   ``log_every`` steps (images/s of the training steps alone, validation and checkpoint
   writing left out), a checkpoint every ``checkpoint_every`` steps and at the end of every
   epoch, validation
-  (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch; with several
-  processes, each steps on its share of every batch (:class:`EpochSampler`) and rank 0
-  alone writes and validates
+  (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch, and a
+  checkpoint of the last whole step when Ctrl-C or SIGTERM stops it (:func:`held_interrupts`);
+  with several processes, each steps on its share of every batch (:class:`EpochSampler`)
+  and rank 0 alone writes and validates
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import importlib.util
 import math
 import multiprocessing
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -63,6 +66,29 @@ class Position:
     step: int = 0
     epoch: int = 0
     batch: int = 0
+
+
+@contextlib.contextmanager
+def held_interrupts():
+    """Hold Ctrl-C and SIGTERM back until the block ends, then deliver them to their own
+    handlers: a block that changes a run's state (a step moves the BatchNorm statistics in
+    its forward pass and the weights in the optimiser's; an epoch's end logs its validation
+    and saves) is done whole or not at all, so the checkpoint an interrupt saves is one an
+    uninterrupted run passes through. Only the main thread receives signals: elsewhere the
+    block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+    previous = {s: signal.signal(s, lambda signum, frame: held.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    for s in dict.fromkeys(held):
+        signal.raise_signal(s)
 
 
 #: the most DataLoader worker processes a run starts by default (per training process)
@@ -102,18 +128,28 @@ def worker_context(method: str | None = None) -> multiprocessing.context.BaseCon
     return ctx
 
 
+def _leave_interrupts_to_the_parent(worker: int) -> None:
+    """A DataLoader worker ignores Ctrl-C and SIGTERM, which a terminal or a job scheduler
+    sends the whole process group: killed by them, it would fail the training process
+    ("DataLoader worker is killed by signal") before that saves its checkpoint; the
+    training process ends its workers when it stops."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int = 1, batch_sampler=None,
                 timeout: float = 0, start: str | None = None) -> torch.utils.data.DataLoader:
     """A DataLoader of ``dataset`` in batches of ``batch_size`` in order, or those of
     ``batch_sampler``. With ``workers`` > 0 they are :func:`worker_context` processes
-    (``start``: its method) kept alive between epochs (persistent); on CUDA the batches
-    come in pinned memory.
+    (``start``: its method) kept alive between epochs (persistent) that leave Ctrl-C and
+    SIGTERM to this process; on CUDA the batches come in pinned memory.
 
     timeout : seconds to wait for a worker's batch before raising (0: for ever)
     """
     kw = {"num_workers": workers, "pin_memory": device.type == "cuda"}
     if workers > 0:
-        kw.update(multiprocessing_context=worker_context(start), persistent_workers=True, timeout=timeout)
+        kw.update(multiprocessing_context=worker_context(start), persistent_workers=True, timeout=timeout,
+                  worker_init_fn=_leave_interrupts_to_the_parent)
     if batch_sampler is not None:
         return torch.utils.data.DataLoader(dataset, batch_sampler=batch_sampler, **kw)
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, **kw)
@@ -303,6 +339,10 @@ class Checkpoint:
         """The saved state (tensors on ``device``)."""
         return torch.load(self.path, map_location=device, weights_only=True)
 
+    def step(self) -> int:
+        """The step it was saved at (the weights mapped, not read)."""
+        return torch.load(self.path, map_location="cpu", weights_only=True, mmap=True)["step"]
+
     def restore(self, trainer: Trainer) -> Position:
         """Load the weights and the optimiser into ``trainer``; where the run stopped."""
         state = self.load(trainer.device)
@@ -448,6 +488,12 @@ class EpochLoop:
     The data loaders (``workers`` processes each, :func:`make_loader`) live as long as the
     loop: :meth:`close` ends their workers. With several processes (``trainer.dist``), only
     rank 0 gets a ``log`` (the others None), saves checkpoints and validates.
+
+    ``at`` is where the run is: the last whole step, or an epoch's end whose validation is
+    done, logged and saved. Interrupted (KeyboardInterrupt: Ctrl-C, or SIGTERM where the
+    CLI makes it one), :meth:`run` saves the checkpoint at ``at`` when a step was taken
+    since it started; steps and epoch ends hold the interrupt back until they are whole
+    (:func:`held_interrupts`), so a resumed run goes on as the uninterrupted one would.
     """
 
     def __init__(self, trainer: Trainer, train_set: StoreDataset, val_set: StoreDataset | None, total: int,
@@ -471,17 +517,26 @@ class EpochLoop:
         if val_set is not None and self.dist.is_main:
             self._val_loader = make_loader(val_set, dev, workers, batch_size=self.config.batch_size)
         self._window = _TrainWindow()
+        self.at = Position()
 
     def run(self, at: Position) -> Position:
         """Train from ``at``; where the run stopped (as saved in the last checkpoint)."""
-        while at.step < self.total and at.epoch < self.config.epochs:
-            at = self._epoch(at)
-            if at.batch >= self.per_epoch:
-                at = Position(at.step, at.epoch + 1, 0)
-            improved = self._val_loader is not None and at.batch == 0 and self._validate(at)
-            self._save(self.checkpoint, at)
-            if improved and self.best is not None:
-                self._save(self.best, at)
+        self.at = start = at
+        try:
+            # an interrupt during an epoch's validation saves the epoch's end (its last
+            # batch done), which owes that validation even at the last step
+            while at.batch >= self.per_epoch or (at.step < self.total and at.epoch < self.config.epochs):
+                at = self._epoch(at)
+                if at.batch >= self.per_epoch:
+                    at = self._end_epoch(at)
+                else:
+                    with held_interrupts():
+                        self._save(self.checkpoint, at)
+        except KeyboardInterrupt:
+            if self.at.step > start.step:
+                with held_interrupts():  # a second Ctrl-C does not cut this save short
+                    self._save(self.checkpoint, self.at)
+            raise
         return at
 
     def close(self) -> None:
@@ -499,20 +554,36 @@ class EpochLoop:
         config, dev = self.config, self.trainer.device
         self.sampler.set_epoch(at.epoch, at.batch)
         for batch in self._train_loader:
-            batch = _to(batch, dev)
-            self.trainer.set_lr(learning_rate(config, at.step, self.total))
-            losses = self.trainer.step(batch, at.step)
-            at = replace(at, step=at.step + 1, batch=at.batch + 1)
-            self._window.add(len(batch["index"]), losses)
-            if self.progress:
-                self.progress.step(at.step, losses["loss"])
-            if at.step % config.log_every == 0 or at.step == self.total:
-                self._log_train(at)
-            if at.step % config.checkpoint_every == 0:
-                self._save(self.checkpoint, at)
+            with held_interrupts():
+                batch = _to(batch, dev)
+                self.trainer.set_lr(learning_rate(config, at.step, self.total))
+                losses = self.trainer.step(batch, at.step)
+                self.at = at = replace(at, step=at.step + 1, batch=at.batch + 1)
+                self._window.add(len(batch["index"]), losses)
+                if at.step % config.log_every == 0 or at.step == self.total:
+                    self._log_train(at)
+                if at.step % config.checkpoint_every == 0:
+                    self._save(self.checkpoint, at)
+                if self.progress:
+                    self.progress.step(at.step, losses["loss"])
             if at.step >= self.total:
                 break
         return at
+
+    def _end_epoch(self, at: Position) -> Position:
+        """Validate after the epoch ``at`` finished, save, and move to the next epoch."""
+        ended = Position(at.step, at.epoch + 1, 0)
+        started = time.perf_counter()
+        # validation changes nothing the checkpoint holds: an interrupt may stop it
+        metrics = None if self._val_loader is None else self.trainer.validate(self.val_set, loader=self._val_loader)
+        self._window.paused += time.perf_counter() - started
+        with held_interrupts():
+            improved = metrics is not None and self._log_validation(ended, metrics)
+            self._save(self.checkpoint, ended)
+            if improved and self.best is not None:
+                self._save(self.best, ended)
+            self.at = ended
+        return ended
 
     def _log_train(self, at: Position) -> None:
         self._window.pooled(self.dist)
@@ -525,15 +596,13 @@ class EpochLoop:
                             "images_per_s": round(self.images_per_s, 3), "seconds": self._seconds()})
         self._window = _TrainWindow()
 
-    def _validate(self, at: Position) -> bool:
-        """Validation after epoch ``at.epoch - 1``; whether its loss is the lowest so far."""
-        started = time.perf_counter()
-        self.val_metrics = self.trainer.validate(self.val_set, loader=self._val_loader)
+    def _log_validation(self, at: Position, metrics: dict[str, float]) -> bool:
+        """Log the validation after epoch ``at.epoch - 1``; whether its loss is the lowest so far."""
+        self.val_metrics = metrics
         self.val_loss = self.val_metrics["loss"]
         if self.log is not None:
             self.log.write({"step": at.step, "epoch": at.epoch - 1, "split": "val", **self.val_metrics,
                             "lr": learning_rate(self.config, at.step, self.total), "seconds": self._seconds()})
-        self._window.paused += time.perf_counter() - started
         improved = self.val_loss < self.best_loss
         self.best_loss = min(self.best_loss, self.val_loss)
         return improved

@@ -298,7 +298,7 @@ def resolve(path: str) -> str:
 
 def beside(path: str, name: str) -> str:
     """The file ``name`` in the folder holding ``path`` (a local path or a URL), resolved
-    (e.g. the house split beside the first store: ``s3://bucket/split.json``)."""
+    (e.g. the house split beside the first store: ``s3://bucket/a.split.json``)."""
     if is_url(path):
         return f"{str(path).rstrip('/').rsplit('/', 1)[0]}/{name}"
     return str(Path(path).resolve().parent / name)
