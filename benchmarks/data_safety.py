@@ -160,6 +160,41 @@ def damaged_cases(w: dict[str, Path], root: Path) -> list[tuple[str, list, list[
     return out
 
 
+def interrupted_training(w: dict[str, Path], root: Path) -> list[tuple[str, dict]]:
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) during training, once
+    a step was taken, then ``--resume``: the hint printed must be the one that works."""
+    import os
+    import signal
+
+    rows = []
+    for when, wait_for in (("before the first step", None), ("after a step", "metrics.csv")):
+        run = root / f"ctrl_c_{'step' if wait_for else 'early'}"
+        args = ["train", w["other.zarr"], "--stage", "depth", "--run", run, "--max-steps", 60, "--batch-size", 2,
+                "--width", 0.125, "--val-fraction", 0, "--test-fraction", 0, "--device", "cpu", "--no-tensorboard",
+                "--workers", 0, "--split-file", root / "ctrl_c.split.json"]
+        before = digest(w["other.zarr"])
+        proc = subprocess.Popen([sys.executable, "-c", CLI, *map(str, args)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, cwd=root, start_new_session=True)
+        deadline = time.monotonic() + 120
+        # early: once the run folder exists (imports done, the split drawn), before any step
+        marker = run / (wait_for or "config.json")
+        while proc.poll() is None and time.monotonic() < deadline:
+            if marker.exists() and (wait_for is None or len(marker.read_text().splitlines()) > 1):
+                break
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate()
+        lines = [line for line in (out + err).splitlines() if line.strip() and not PROGRESS.search(line)]
+        rows.append((f"train: Ctrl-C {when}", {"code": proc.returncode, "lines": len(lines),
+                                               "traceback": any("Traceback" in x for x in lines),
+                                               "unchanged": digest(w["other.zarr"]) == before,
+                                               "first": lines[0] if lines else ""}))
+        again = args + (["--resume"] if "again with --resume" in (lines[0] if lines else "") else [])
+        rows.append((f"train: the command it says, {'--resume' if '--resume' in again else 'again'}",
+                     check(again, root, [w["other.zarr"]])))
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keep", type=Path, default=None, help="work in this folder and keep it")
@@ -170,6 +205,7 @@ def main() -> None:
     w = setup(root)
     print(f"set up in {time.perf_counter() - t0:.0f} s: {root}")
     rows = [(name, check(a, root, inputs)) for name, a, inputs in cases(w)]
+    rows += interrupted_training(w, root)
     repaired = []
     for name, a, inputs, store in damaged_cases(w, root):
         rows.append((name, check(a, root, inputs)))

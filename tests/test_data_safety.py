@@ -254,3 +254,23 @@ def test_render_repairs_exactly_the_damaged_shard(clean, tmp_path):
     assert res.exit_code == 0, res.output
     assert "(1 written now)" in res.output
     assert array_digests(str(store)) == array_digests(str(clean))
+
+
+def test_training_on_a_damaged_store_ends_in_one_line_with_its_loader_workers(tmp_path):
+    """The damage surfaces in a DataLoader worker; the process must end too (its workers
+    ignore the SIGTERM multiprocessing ends them with at exit: the trainer ends them)."""
+    import subprocess
+    import sys
+
+    store = tmp_path / "s.zarr"
+    render_dataset(BUNDLED_TOY, str(store), load_config(None, {"width": 32, "height": 24, "views_per_house": 2,
+                                                               "view": {"overhead": {"resolution": 16}}}))
+    DAMAGE["zeroed"](store / "depth" / "c" / "1" / "0" / "0" / "0")
+    args = ["train", store, "--stage", "depth", "--run", tmp_path / "run", "--max-steps", 2, "--batch-size", 6,
+            "--width", 0.125, "--val-fraction", 0, "--test-fraction", 0, "--device", "cpu", "--no-tensorboard",
+            "--workers", 1]
+    done = subprocess.run([sys.executable, "-c", "from sceneforge.cli.main import main; main()", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
+    assert done.returncode == EXIT_ERROR and "Traceback" not in done.stderr, done.stderr
+    assert len(errors) == 1 and "depth of views 4-5" in errors[0] and "sceneforge validate" in errors[0]

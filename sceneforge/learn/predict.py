@@ -46,7 +46,7 @@ from .networks import SEG_LAYERS, masked_layers, object_pixels
 from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
-from .trainer import default_workers, make_loader
+from .trainer import default_workers, end_workers, make_loader
 
 if TYPE_CHECKING:
     from sceneforge.config import DatasetConfig
@@ -224,16 +224,19 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         shards = _Shards(writer, render_config, source, valid)
         if progress:
             progress.start("predicting views", len(valid), "views")
-        with torch.no_grad():
-            for batch in loader:
-                batch = {k: v.to(dev) for k, v in batch.items()}
-                outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor,
-                                         (min_object_probability, min_overhead_object_probability))
-                for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
-                    shards.add(int(i), {name: value[row] for name, value in outputs.items()})
-                shards.flush()
-                if progress:
-                    progress.advance(len(batch["index"]))
+        try:
+            with torch.no_grad():
+                for batch in loader:
+                    batch = {k: v.to(dev) for k, v in batch.items()}
+                    outputs = _predict_batch(nets, eft, batch, camera_run is not None, floor,
+                                             (min_object_probability, min_overhead_object_probability))
+                    for row, i in enumerate(valid[batch["index"].cpu().numpy()]):
+                        shards.add(int(i), {name: value[row] for name, value in outputs.items()})
+                    shards.flush()
+                    if progress:
+                        progress.advance(len(batch["index"]))
+        finally:
+            end_workers(loader)
         shards.flush(final=True)
 
         writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],

@@ -137,6 +137,16 @@ def _leave_interrupts_to_the_parent(worker: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
+def end_workers(loader: torch.utils.data.DataLoader | None) -> None:
+    """End the worker processes of a :func:`make_loader` loader now. Dropping the loader is
+    not enough after an error: the traceback keeps the loop's iterator alive, and at exit
+    multiprocessing ends workers with the SIGTERM they ignore
+    (:func:`_leave_interrupts_to_the_parent`), so the process would wait for them for ever."""
+    iterator = getattr(loader, "_iterator", None)  # persistent workers: the loader keeps its iterator
+    if iterator is not None:
+        iterator._shutdown_workers()
+
+
 def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int = 1, batch_sampler=None,
                 timeout: float = 0, start: str | None = None) -> torch.utils.data.DataLoader:
     """A DataLoader of ``dataset`` in batches of ``batch_size`` in order, or those of
@@ -271,16 +281,21 @@ class Trainer:
         for net in self.nets.values():
             net.eval()
         total, n, metrics = 0.0, 0, Metrics()
-        if loader is None:
+        own = loader is None
+        if own:
             loader = make_loader(dataset, self.device, workers, batch_size=self.config.batch_size)
-        with torch.no_grad():
-            for batch in loader:
-                batch = _to(batch, self.device)
-                outputs = self._outputs(self.nets, batch)
-                loss, _ = self.stage.objective(self.config, outputs, batch)
-                self.stage.measure(self.config, outputs, batch, metrics)
-                total += loss.item() * len(batch["index"])
-                n += len(batch["index"])
+        try:
+            with torch.no_grad():
+                for batch in loader:
+                    batch = _to(batch, self.device)
+                    outputs = self._outputs(self.nets, batch)
+                    loss, _ = self.stage.objective(self.config, outputs, batch)
+                    self.stage.measure(self.config, outputs, batch, metrics)
+                    total += loss.item() * len(batch["index"])
+                    n += len(batch["index"])
+        finally:
+            if own:
+                end_workers(loader)
         for net in self.nets.values():
             net.train()
         return {"loss": total / max(n, 1), **metrics.result()}
@@ -541,6 +556,8 @@ class EpochLoop:
 
     def close(self) -> None:
         """End the loaders' worker processes."""
+        end_workers(self._train_loader)
+        end_workers(self._val_loader)
         self._train_loader = self._val_loader = None
 
     def _save(self, checkpoint: Checkpoint, at: Position) -> None:
