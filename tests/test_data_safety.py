@@ -274,3 +274,13 @@ def test_training_on_a_damaged_store_ends_in_one_line_with_its_loader_workers(tm
     errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
     assert done.returncode == EXIT_ERROR and "Traceback" not in done.stderr, done.stderr
     assert len(errors) == 1 and "depth of views 4-5" in errors[0] and "sceneforge validate" in errors[0]
+
+
+def test_evaluate_never_writes_over_its_inputs(store, tmp_path):
+    split = tmp_path / "small.split.json"
+    split.write_text('{"a split": "of someone"}')
+    before = tree_digest(split)
+    one_red_line(run("evaluate", "predictions", store, store, "--split-file", split, "--json", split),
+                 "the JSON file is the split file")
+    one_red_line(run("evaluate", "predictions", store, store, "--plot", store / "pr.png"), "inside the store")
+    assert tree_digest(split) == before
