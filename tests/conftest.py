@@ -118,3 +118,48 @@ def assert_same_geometry(a: House, b: House, atol=1e-6):
         np.testing.assert_allclose(ma.bounds, mb.bounds, atol=atol)
         np.testing.assert_allclose(ma.area, mb.area, rtol=1e-6, atol=atol)
         assert len(ia.faces) == len(ib.faces)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Torch on one thread for a module's tests: the test machines share two cores, and
+    torch's thread pool spins for seconds under contention."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def render_learn_store(folder: Path) -> str:
+    """The training tests' store in ``folder``: 3 bundled toy houses × 2 views, 64×48
+    frontal, 32×32 overhead, with RGB."""
+    pytest.importorskip("pyrender", reason="the render extra (pyrender) is not installed")
+    from sceneforge.config import load_config
+    from sceneforge.pipeline import render_dataset
+
+    path = folder / "toy.zarr"
+    config = load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
+                                "view": {"overhead": {"resolution": 32}}})
+    summary = render_dataset("bundled:toy", str(path), config)
+    assert summary.views == 6 and not summary.failed_houses
+    return str(path)
+
+
+#: two tiny views per toy house, four views per shard, normals and meshes kept: 6 views in 2
+#: shards, every kind of array a store has
+SMALL = {"width": 32, "height": 24, "views_per_house": 2, "view": {"overhead": {"resolution": 16}},
+         "store": {"views_per_shard": 4, "normals": True, "gt_mesh": "all"}}
+
+
+@pytest.fixture(scope="session")
+def small_store(tmp_path_factory) -> Path:
+    """The bundled toy houses rendered with :data:`SMALL`, for tests that read it (or copy it)."""
+    from sceneforge.config import load_config
+    from sceneforge.houses import BUNDLED_TOY
+    from sceneforge.pipeline import render_dataset
+
+    out = tmp_path_factory.mktemp("small") / "small.zarr"
+    render_dataset(BUNDLED_TOY, str(out), load_config(None, SMALL))
+    return out

@@ -21,17 +21,11 @@ from sceneforge.pipeline import render_dataset
 from sceneforge.store import array_digests, open_store, validate_store
 from sceneforge.store.guard import check_apart, enclosing_store, store_kind
 
-#: two tiny views per toy house, four views per shard, meshes kept: 6 views in 2 shards,
-#: every kind of array a store has
-SMALL = {"width": 32, "height": 24, "views_per_house": 2, "view": {"overhead": {"resolution": 16}},
-         "store": {"views_per_shard": 4, "normals": True, "gt_mesh": "all"}}
 
-
-@pytest.fixture(scope="module")
-def clean(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("clean") / "small.zarr"
-    render_dataset(BUNDLED_TOY, str(out), load_config(None, SMALL))
-    return out
+@pytest.fixture
+def clean(small_store) -> Path:
+    """A clean store of every kind of array (:data:`conftest.SMALL`), never written to."""
+    return small_store
 
 
 @pytest.fixture

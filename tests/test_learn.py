@@ -45,31 +45,18 @@ from sceneforge.learn.stages import REGISTRY, get_stage, overhead_input  # noqa:
 from sceneforge.learn.train import STAGES, TrainConfig, load_run, read_config, read_metrics, train  # noqa: E402
 from sceneforge.learn.trainer import Checkpoint, EpochLoop, MetricsLog, Position, Trainer  # noqa: E402
 
+from .conftest import render_learn_store  # noqa: E402
+
 TINY = 0.125  # network width multiplier of every test
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # the test machines share two cores: torch's thread pool spins for seconds under contention
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> str:
     """3 bundled toy houses × 2 views, 64×48 frontal, 32×32 overhead."""
-    pytest.importorskip("pyrender", reason="the render extra (pyrender) is not installed")
-    from sceneforge.config import load_config
-    from sceneforge.pipeline import render_dataset
-
-    path = tmp_path_factory.mktemp("learn") / "toy.zarr"
-    config = load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
-                                "view": {"overhead": {"resolution": 32}}})
-    summary = render_dataset("bundled:toy", str(path), config)
-    assert summary.views == 6 and not summary.failed_houses
-    return str(path)
+    return render_learn_store(tmp_path_factory.mktemp("learn"))
 
 
 @pytest.fixture(scope="module")

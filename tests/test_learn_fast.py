@@ -32,32 +32,21 @@ from sceneforge.learn.trainer import (  # noqa: E402
     resolve_amp,
 )
 
+from .conftest import render_learn_store  # noqa: E402
+
 TINY = 0.125
 CPU = torch.device("cpu")
 #: seconds a DataLoader worker may take for a batch before the test fails (a deadlock)
 WORKER_TIMEOUT = 60
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> str:
     """3 bundled toy houses × 2 views, 64×48 frontal, 32×32 overhead."""
-    pytest.importorskip("pyrender", reason="the render extra (pyrender) is not installed")
-    from sceneforge.config import load_config
-    from sceneforge.pipeline import render_dataset
-
-    path = tmp_path_factory.mktemp("fast") / "toy.zarr"
-    config = load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
-                                "view": {"overhead": {"resolution": 32}}})
-    assert render_dataset("bundled:toy", str(path), config).views == 6
-    return str(path)
+    return render_learn_store(tmp_path_factory.mktemp("fast"))
 
 
 def small_config(store: str, tmp_path: Path, **kw) -> TrainConfig:

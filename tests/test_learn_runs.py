@@ -32,30 +32,19 @@ from sceneforge.learn.train import TrainConfig, read_config, read_metrics, train
 from sceneforge.learn.trainer import Trainer, make_loader  # noqa: E402
 from sceneforge.store import open_store  # noqa: E402
 
+from .conftest import render_learn_store  # noqa: E402
+
 TINY = 0.125
 OPTS = dict(device="cpu", tensorboard=False, workers=0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> str:
     """3 bundled toy houses × 2 views, 64×48 frontal, 32×32 overhead."""
-    pytest.importorskip("pyrender", reason="the render extra (pyrender) is not installed")
-    from sceneforge.config import load_config
-    from sceneforge.pipeline import render_dataset
-
-    path = tmp_path_factory.mktemp("runs") / "toy.zarr"
-    config = load_config(None, {"width": 64, "height": 48, "views_per_house": 2,
-                                "view": {"overhead": {"resolution": 32}}})
-    assert render_dataset("bundled:toy", str(path), config).views == 6
-    return str(path)
+    return render_learn_store(tmp_path_factory.mktemp("runs"))
 
 
 def small_config(store: str, split_file: Path | None, **kw) -> TrainConfig:

@@ -29,9 +29,7 @@ from sceneforge.store import (
 )
 from sceneforge.view import compute_view
 
-#: two tiny views per toy house, four views per shard, normals on: 6 views in 2 shards
-SMALL = {"width": 32, "height": 24, "views_per_house": 2, "view": {"overhead": {"resolution": 16}},
-         "store": {"views_per_shard": 4, "normals": True, "gt_mesh": "all"}}
+from .conftest import SMALL
 
 
 @pytest.fixture(autouse=True)
@@ -40,11 +38,9 @@ def render_commands(monkeypatch):
         monkeypatch.setitem(cli.lazy, name, f"render:{name}")
 
 
-@pytest.fixture(scope="module")
-def store_path(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("store") / "small.zarr"
-    render_dataset(BUNDLED_TOY, str(out), load_config(None, SMALL))
-    return out
+@pytest.fixture
+def store_path(small_store) -> Path:
+    return small_store
 
 
 @pytest.fixture
