@@ -19,7 +19,8 @@ from sceneforge.learn.train import frontal_nets, load_run, train  # noqa: E402
 from . import test_learn  # noqa: E402
 
 # the tiny store and 2-step frozen runs of the learning tests (fixtures of this module's own)
-store, frontal_runs, one_thread = test_learn.store, test_learn.frontal_runs, test_learn.one_thread
+store, frontal_runs = test_learn.store, test_learn.frontal_runs
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 small_config = test_learn.small_config
 
 CPU = torch.device("cpu")
