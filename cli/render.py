@@ -9,7 +9,7 @@ import click
 from click.core import ParameterSource
 
 from sceneforge.config import DatasetConfig
-from sceneforge.errors import EXIT_FAILURES
+from sceneforge.errors import EXIT_FAILURES, listed
 from sceneforge.store.export import FORMATS
 
 from .options import HOUSE_OPTIONS, ConfigOption, Size, absolute_path, config_options
@@ -108,9 +108,9 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
                                  progress=RichProgress(bar))
     if summary.damaged:
         console.print(f"repaired: {plural(len(summary.damaged), 'file')} not as written "
-                      f"({_listed(summary.damaged)}); their shards rendered again")
+                      f"({listed(summary.damaged, 3)}); their shards rendered again")
     if summary.removed:
-        console.print(f"removed: {plural(len(summary.removed), 'file')} no run wrote ({_listed(summary.removed)})")
+        console.print(f"removed: {plural(len(summary.removed), 'file')} no run wrote ({listed(summary.removed, 3)})")
     if summary.changes:
         console.print(f"updated: {summary.changes.describe()}")
     if summary.retried:
@@ -132,10 +132,6 @@ def render(houses, out, config, workers, scheduler, overwrite, update, retry_fai
         console.print(f"[red]{plural(len(summary.failed_houses), 'house')} failed[/red] (failure log: the store's "
                       f"`failures` attribute{retry})")
         raise SystemExit(EXIT_FAILURES)
-
-
-def _listed(keys, shown: int = 3) -> str:
-    return ", ".join(keys[:shown]) + (f" and {len(keys) - shown} more" if len(keys) > shown else "")
 
 
 @click.command()

@@ -59,6 +59,14 @@ EXIT_FAILURES = 3
 EXIT_INTERRUPTED = 130
 
 
+def listed(items, shown: int = 5) -> str:
+    """``"a, b, c and 4 more"``: the first ``shown`` of ``items`` (strings) and how many
+    are left out, for messages naming many files, houses or views."""
+    items = list(items)
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return ", ".join(items[:shown]) + more
+
+
 def plural(n: int, word: str, many: str | None = None) -> str:
     """``"1 house"``, ``"2 houses"`` (``many``: the plural when it is not ``word + "s"``):
     counts in messages, library and CLI alike."""

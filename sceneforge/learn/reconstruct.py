@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..cameras import DEFAULT_HALF_FOV_X, DEFAULT_PITCH, pose_from_view
-from ..errors import SceneforgeError
+from ..errors import SceneforgeError, listed
 from .dataset import CLASS_TO_NYU40, SEG_CLASSES, normalize_rgb
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS
@@ -119,8 +119,7 @@ def check_outputs(out: str | Path, names: Sequence[str], *, run, camera_run, ima
     there = [Path(out) / f"{name}{suffix}" for name in names for suffix in OUTPUT_SUFFIXES]
     there = [p for p in there if p.exists()]
     if there and not overwrite:
-        more = f" and {len(there) - 1} more" if len(there) > 1 else ""
-        raise SceneforgeError(f"{out}: already holds {there[0].name}{more}; pass --overwrite to replace the "
+        raise SceneforgeError(f"{out}: already holds {listed([p.name for p in there], 1)}; pass --overwrite to replace the "
                               "files of these photos, or choose another folder")
 
 

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from ..errors import listed
+
 #: the paths being recorded in this thread (None: not recording)
 _recording = threading.local()
 _hooked = False
@@ -127,8 +129,7 @@ class InputChanges:
         for label, ids in (("changed", self.changed), ("added", self.added), ("removed", self.removed),
                            ("failed before and changed since", self.fixed)):
             if ids:
-                more = f" and {len(ids) - most} more" if len(ids) > most else ""
-                parts.append(f"{label}: {', '.join(ids[:most])}{more}")
+                parts.append(f"{label}: {listed(ids, most)}")
         return "; ".join(parts)
 
 

@@ -131,10 +131,11 @@ def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, ov
         found = changes(attrs["houses"], house_ids)
         _refuse_unless(found, update, writer, "this store was rendered")
         failed = {f["house"] for f in attrs["failures"]} & set(house_ids) if retry_failed else set()
-        damage = file_damage(writer, attrs, DatasetConfig.from_dict(attrs["config"], recorded=True))
+        stored = DatasetConfig.from_dict(attrs["config"], what=f"{writer.url} config", recorded=True)
+        damage = file_damage(writer, attrs, stored)
         for key in damage.unexpected:  # no run wrote them: not this store's
             writer.rm(key)
-        shards = damaged_shards(damage, attrs["views"], attrs["config"]["store"]["views_per_shard"])
+        shards = damaged_shards(damage, attrs["views"], stored.store.views_per_shard)
         if not found and not failed and not shards:
             return Preparation("complete", removed=tuple(damage.unexpected))
         reopen(writer, attrs, run_identity, house_ids, found.redo | failed, shards)

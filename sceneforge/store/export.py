@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import CLASS_LAYERS, FRONT_LAYERS, LAYER_NAMES
-from ..errors import MissingDependencyError, SceneforgeError, plural
+from ..errors import MissingDependencyError, SceneforgeError, listed, plural
 from .guard import check_apart, check_not_in_store, describe_kind, store_kind
 from .reader import SceneStore
 
@@ -99,8 +99,7 @@ def check_export_folder(out_dir: str | os.PathLike, store: str, *, overwrite: bo
     entries = sorted(folder.iterdir())
     foreign = [p.name + "/" * p.is_dir() for p in entries if p.is_dir() or not EXPORT_FILE.fullmatch(p.name)]
     if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise SceneforgeError(f"{out_dir}: the export folder holds files export did not write: {shown}; "
+        raise SceneforgeError(f"{out_dir}: the export folder holds files export did not write: {listed(foreign)}; "
                               "export writes into an empty folder, or over an earlier export (--overwrite): "
                               "choose another folder")
     if entries and not overwrite:

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Iterable
 
 from ..errors import SceneforgeError
-from .location import errors, is_url, open_location
+from .location import errors, is_url, open_location, resolve
 
 #: the kinds of store by the command that writes them
 WRITERS = {"dataset": "sceneforge render", "prediction": "sceneforge predict"}
@@ -38,7 +38,7 @@ def _join(path: str, name: str) -> str:
 
 
 def _normal(path: str | os.PathLike) -> str:
-    return str(path).rstrip("/") if is_url(str(path)) else os.path.realpath(path)
+    return resolve(str(path)).rstrip("/") or "/"
 
 
 def store_kind(path: str | os.PathLike, storage_options: dict | None = None) -> str | None:
@@ -81,7 +81,7 @@ def enclosing_store(path: str | os.PathLike) -> Path | None:
     strictly inside, or None."""
     if is_url(str(path)):
         return None
-    here = Path(os.path.realpath(path))
+    here = Path(resolve(str(path)))
     found = None
     for folder in here.parents:  # innermost first: an array of a store is a zarr node too
         if (folder / GROUP_FILE).is_file() or (folder / RENDER_RUN_FILE).is_file():

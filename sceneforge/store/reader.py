@@ -53,6 +53,12 @@ class CheckedArray:
     def __len__(self) -> int:
         return len(self._array)
 
+    @property
+    def _per(self) -> int:
+        """Rows per file along the first axis: a shard's (per-view arrays, mesh rows) or a
+        chunk's (the unsharded mesh offsets)."""
+        return self._array.shards[0] if self._array.shards else self._array.chunks[0]
+
     def __getitem__(self, selection):
         shards = self._shards(selection)
         try:
@@ -70,7 +76,7 @@ class CheckedArray:
 
     def _shards(self, selection) -> set[int]:
         """The shards (along the first axis) that ``selection`` reads."""
-        n, per = self._array.shape[0], self._array.shards[0] if self._array.shards else self._array.chunks[0]
+        n, per = self._array.shape[0], self._per
         first = selection[0] if isinstance(selection, tuple) and selection else selection
         if isinstance(first, (int, np.integer)):
             rows = range(int(first) % n, int(first) % n + 1) if n else range(0)
@@ -88,10 +94,9 @@ class CheckedArray:
         return shard_key(self._array, shard)
 
     def _first_broken(self, shards: set[int]) -> int | None:
-        per = self._array.shards[0] if self._array.shards else self._array.chunks[0]
         for shard in sorted(shards):
             try:
-                self._array[shard * per: (shard + 1) * per]
+                self._array[shard * self._per: (shard + 1) * self._per]
             except Exception:
                 return shard
         return None
@@ -101,8 +106,7 @@ class CheckedArray:
         if shard is None:
             return DamagedStoreError(f"{where}: {name} {problem}; run `sceneforge validate {where}`: it names the "
                                      "damaged files and how to repair them")
-        per = self._array.shards[0] if self._array.shards else self._array.chunks[0]
-        a, b = shard * per, min((shard + 1) * per, self._array.shape[0]) - 1
+        a, b = shard * self._per, min((shard + 1) * self._per, self._array.shape[0]) - 1
         rows = "views" if self._array.path in layout() and layout()[self._array.path].per_view else "rows"
         return DamagedStoreError(f"{where}: {name} of {rows} {a}-{b}: the shard file {self._key(shard)} {problem}; "
                                  f"run `sceneforge validate {where}`: it names every damaged file and how to "

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..conventions import LAYER_NAMES, NYU40_NAMES, nyu40_table, tol
-from ..errors import SceneforgeError, plural
+from ..errors import SceneforgeError, listed, plural
 from .layout import MESH_KINDS, array_specs, sizes_of
 from .reader import SceneStore, arrays_of, open_group
 from .writer import StoreWriter
@@ -185,8 +185,7 @@ def _check_files(files: "StoreWriter", attrs: dict, config: "DatasetConfig", not
                        ("damaged (not the bytes written: truncated or changed)", found.damaged),
                        ("not written by the run", found.unexpected)):
         if keys:
-            shown = ", ".join(sorted(keys)[:5]) + (f" and {len(keys) - 5} more" if len(keys) > 5 else "")
-            problems.append(f"{len(keys)} file(s) {what}: {shown}")
+            problems.append(f"{len(keys)} file(s) {what}: {listed(sorted(keys))}")
     return problems
 
 
@@ -201,9 +200,6 @@ class FileDamage:
     damaged: list[str] = field(default_factory=list)
     unexpected: list[str] = field(default_factory=list)
     manifest: str = ""
-
-    def __bool__(self) -> bool:
-        return bool(self.missing or self.damaged or self.unexpected or self.manifest)
 
 
 def file_damage(files: "StoreWriter", attrs: dict, config: "DatasetConfig") -> FileDamage:
