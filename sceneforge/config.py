@@ -124,6 +124,9 @@ class DatasetConfig:
     """Everything that decides what ``sceneforge render`` writes (not how fast: workers and
     the Dask scheduler are run options, so stores written with any of them are identical)."""
 
+    #: the fields naming files, made absolute when the config is resolved (:func:`absolute_paths`)
+    PATHS: typing.ClassVar[tuple[str, ...]] = ("cameras", "houses.name_map", "houses.future_dir")
+
     #: frontal image width, pixels
     width: int = 320
     #: frontal image height, pixels
@@ -274,7 +277,31 @@ def resolve_config(cls, path: str | Path | None = None, overrides: dict | None =
     """
     data = {} if path is None else read_config_file(path)
     what = "config" if path is None else str(path)
-    return cls.from_dict(_merge(data, overrides or {}), what=what)
+    return cls.from_dict(absolute_paths(cls, _merge(data, overrides or {})), what=what)
+
+
+def absolute_paths(cls, data: dict) -> dict:
+    """``data`` with the values of ``cls.PATHS`` (dotted names of the fields that name a file
+    or folder) made absolute against the working folder, URLs left as they are: the config
+    a store or a run saves names its files from any folder (``evaluate``, ``--update``,
+    ``overhead-camera`` run elsewhere)."""
+    out = data
+    for dotted in getattr(cls, "PATHS", ()):
+        *parents, key = dotted.split(".")
+        node = out
+        for parent in parents:
+            node = node.get(parent) if isinstance(node, dict) else None
+        value = node.get(key) if isinstance(node, dict) else None
+        if isinstance(value, str) and value and not re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", value):
+            out = _merge(out, _nested(dotted, str(Path(value).expanduser().resolve())))
+    return out
+
+
+def _nested(dotted: str, value) -> dict:
+    """``{"a": {"b": value}}`` for ``"a.b"``."""
+    for key in reversed(dotted.split(".")):
+        value = {key: value}
+    return value
 
 
 def _merge(base: dict, update: dict) -> dict:

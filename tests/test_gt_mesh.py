@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -192,3 +193,22 @@ def test_a_store_of_predictions_has_no_meshes_to_make(stores, tmp_path):
     group.attrs["prediction"] = {"views": [0]}
     with pytest.raises(SceneforgeError, match="a store of predictions has no ground-truth meshes"):
         ground_truth_meshes(str(copy)).mesh(0)
+
+
+def test_a_relative_name_map_is_recorded_absolute_and_read_from_another_folder(tmp_path, monkeypatch):
+    from sceneforge.houses import load
+    from sceneforge.testing.generic import write_house
+
+    monkeypatch.chdir(tmp_path)
+    write_house(load(bundled_toy_dir() / "toy_0_002"), "scenes/living.glb")
+    Path("scenes/living_map.json").write_text(json.dumps({"patterns": [["^never-a-name$", "chair"]]}))
+    res = run("render", "scenes/living.glb", "one.zarr", *RENDER, "--name-map", "scenes/living_map.json")
+    assert res.exit_code == 0, res.output
+    recorded = open_store("one.zarr").config.houses.name_map
+    assert recorded == str(tmp_path.resolve() / "scenes" / "living_map.json")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    lean = open_store("../one.zarr")
+    made = GroundTruthMeshes(lean).mesh(0)  # the house loaded again with the recorded map
+    assert len(made["envelope"][1])

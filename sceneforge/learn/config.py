@@ -116,6 +116,9 @@ class TrainConfig:
     :func:`~sceneforge.learn.train.train` and of its environment). ``batch_size`` is the
     whole batch of a step, shared among the processes of a distributed run."""
 
+    #: the fields naming files or folders, made absolute when the config is resolved
+    PATHS: typing.ClassVar[tuple[str, ...]] = ("split.file", "depth_run", "seg_run")
+
     #: the stage to train: the frontal depth or segmentation net, then the overhead nets
     #: (on the frozen frontal nets) or the virtual camera proposal (on the frozen depth net)
     stage: Stage
@@ -242,6 +245,9 @@ def _without_legacy_keys(data: dict) -> dict:
 @dataclass(frozen=True)
 class PredictConfig:
     """How a trained run's predictions are made (what they are is the run's own config)."""
+
+    #: the fields naming files or folders, made absolute when the config is resolved
+    PATHS: typing.ClassVar[tuple[str, ...]] = ("camera_run", "split_file")
 
     #: views per batch
     batch_size: int = 8
