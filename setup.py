@@ -48,4 +48,20 @@ def _extensions() -> list[Extension]:
     )]
 
 
-setup(ext_modules=_extensions())
+#: the code packages; pyproject.toml maps sceneforge.cli to cli/ and sceneforge.schemas to schemas/
+CODE = ["sceneforge", "sceneforge.render", "sceneforge.houses", "sceneforge.houses.formats", "sceneforge.houses.toy",
+        "sceneforge.overhead", "sceneforge.testing", "sceneforge.raytrace", "sceneforge.evaluate", "sceneforge.learn",
+        "sceneforge.pipeline", "sceneforge.store", "sceneforge.cli", "sceneforge.schemas"]
+
+
+def _data() -> dict[str, list[str]]:
+    """Every folder under sceneforge/data (name maps, category tables, the toy houses) as a
+    package holding all its files: setuptools warns about each data folder it is not told of."""
+    root = Path(__file__).resolve().parent / "sceneforge" / "data"
+    folders = [root, *sorted(p for p in root.rglob("*") if p.is_dir() and p.name != "__pycache__")]
+    return {".".join(("sceneforge", "data", *f.relative_to(root).parts)): ["*"] for f in folders}
+
+
+DATA = _data()
+setup(ext_modules=_extensions(), packages=CODE + list(DATA),
+      package_data={"sceneforge.schemas": ["*.json"], **DATA})

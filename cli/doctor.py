@@ -10,7 +10,7 @@ from importlib import metadata
 
 import click
 
-from sceneforge.errors import EXIT_FAILURES
+from sceneforge.errors import EXIT_FAILURES, plural
 
 #: (import name, distribution name, what needs it, how to install it)
 PACKAGES = (
@@ -117,6 +117,17 @@ def check_rendering(gpu: int | None) -> list[Check]:
     return checks
 
 
+def summary_line(checks: list[Check]) -> str:
+    """``"11 checks: 10 passed, 1 warning"``: every status counted, none left out of "passed"."""
+    counts = {status: sum(c.status == status for c in checks) for status in ("PASS", "WARN", "FAIL")}
+    parts = [f"{counts['PASS']} passed"]
+    if counts["WARN"]:
+        parts.append(plural(counts["WARN"], "warning"))
+    if counts["FAIL"]:
+        parts.append(f"{counts['FAIL']} failed")
+    return f"{plural(len(checks), 'check')}: {', '.join(parts)}"
+
+
 @click.command("doctor")
 @click.option("--gpu", type=click.IntRange(min=0), default=None,
               help="EGL device to render on. Default: $EGL_DEVICE_ID, else the first GPU, else Mesa's software device.")
@@ -137,7 +148,7 @@ def doctor(gpu):
         click.echo(click.style(f"{c.status:<5}", fg=colours[c.status]) + f" {c.name}: {c.detail}")
         if c.install:
             click.echo(f"      install: {c.install}")
+    click.echo(summary_line(checks))
     failed = sum(c.status == "FAIL" for c in checks)
-    click.echo(f"{failed} of {len(checks)} checks failed" if failed else f"all {len(checks)} checks passed")
     if failed:
         click.get_current_context().exit(EXIT_FAILURES)

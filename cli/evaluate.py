@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
 
@@ -33,6 +34,18 @@ def _limit(func):
 def _json(func):
     return click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
                         help="Also write the table values and mean curves to this JSON file.")(func)
+
+
+def _beside(store: str, kind: str) -> str:
+    """The default plot of a command on ``store``: ``NAME.KIND.png`` beside ``NAME.zarr``
+    (in the current folder when the store is a URL), never a fixed name in the current
+    folder that the next evaluation of another store would replace."""
+    from sceneforge.store.location import is_url
+
+    name = store.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
+    if is_url(store):
+        return f"{name}.{kind}.png"
+    return str(Path(store.rstrip("/")).parent / f"{name}.{kind}.png")
 
 
 def _check(plot, json_path, inputs):
@@ -97,8 +110,8 @@ def evaluate():
 @config_options(EvaluateConfig, SURFACE_OPTIONS)
 @_limit
 @_json
-@click.option("--plot", type=click.Path(dir_okay=False), default="coverage.png", show_default=True,
-              help="PNG of the precision and recall curves.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="PNG of the precision and recall curves. [default: NAME.coverage.png beside the store NAME.zarr]")
 def coverage(store, config, limit, json_path, plot):
     """How much of each view's ground-truth mesh the meshes of its ground-truth layers
     cover (paper Table 1): recall at the threshold of D1, D1-2, D1-3, D1-4, D1-5 and
@@ -107,6 +120,7 @@ def coverage(store, config, limit, json_path, plot):
     from sceneforge.evaluate import COVERAGE_VARIANTS, coverage_views, evaluate_views
     from sceneforge.evaluate.stores import views_to_score
 
+    plot = plot or _beside(store, "coverage")
     _check(plot, json_path, [("store", store)])
     s, meshes = _truth(store)
     views = _scored(coverage_views(s, limit, meshes), len(views_to_score(s, limit)))
@@ -128,8 +142,8 @@ def _house_split(split_file: str | None, pred, gt: str):
 @config_options(EvaluateConfig, SURFACE_OPTIONS)
 @_limit
 @_json
-@click.option("--plot", type=click.Path(dir_okay=False), default="predictions.png", show_default=True,
-              help="PNG of the precision and recall curves.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="PNG of the precision and recall curves. [default: NAME.predictions.png beside PRED, NAME.zarr]")
 @click.option("--split", type=click.Choice(["test", "val", "train", "all"]), default="test", show_default=True,
               help="Score the views of this split's houses only (all: every predicted view).")
 @click.option("--split-file", type=click.Path(exists=True, dir_okay=False), default=None,
@@ -151,6 +165,7 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     from sceneforge.evaluate.stores import check_matching, empty_views, views_to_score
     from sceneforge.store import open_store
 
+    plot = plot or _beside(pred, "predictions")
     _check(plot, json_path, [("prediction store", pred), ("ground-truth store", gt), ("split file", split_file)])
     pred_store, (gt_store, gt_meshes) = open_store(pred), _truth(gt)
     try:
@@ -198,8 +213,8 @@ def _voxel_line(v) -> str:
 @click.argument("gt", required=False)
 @config_options(EvaluateConfig, VOXEL_OPTIONS)
 @_limit
-@click.option("--plot", type=click.Path(dir_okay=False), default="voxel_iou.png", show_default=True,
-              help="PNG of the histogram of per-view IoU.")
+@click.option("--plot", type=click.Path(dir_okay=False), default=None,
+              help="PNG of the histogram of per-view IoU. [default: NAME.voxel_iou.png beside LAYERS, NAME.zarr]")
 def voxels(layers, gt, config, limit, plot):
     """Voxel IoU of the layer intervals (D1, D2) and (D3, D4) of LAYERS against the solid
     ground-truth object mesh of GT, per view, in a grid of RESOLUTION³ voxels over a
@@ -208,6 +223,7 @@ def voxels(layers, gt, config, limit, plot):
     from sceneforge.evaluate import plot_iou_histogram, score_store_voxels
     from sceneforge.store import open_store
 
+    plot = plot or _beside(layers, "voxel_iou")
     check_output(plot, "plot")
     truth, meshes = _truth(gt or layers)
     report = score_store_voxels(open_store(layers) if gt else truth, truth if gt else None, config.voxels, limit,

@@ -12,6 +12,7 @@ a store's lock is released).
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import logging
 import signal
@@ -82,6 +83,15 @@ class LazyGroup(click.Group):
             module, attr = self.lazy[name].split(":")
             return getattr(importlib.import_module(f"sceneforge.cli.{module}"), attr)
         return super().get_command(ctx, name)
+
+    def resolve_command(self, ctx, args):
+        name = click.utils.make_str(args[0]) if args else ""
+        if args and not name.startswith("-") and self.get_command(ctx, name) is None:
+            # Click suggests only among the commands imported: none of the lazy ones
+            close = difflib.get_close_matches(name, self.list_commands(ctx), n=3)
+            hint = f" Did you mean {' or '.join(map(repr, close))}?" if close else ""
+            raise click.UsageError(f"No such command {name!r}.{hint}", ctx)
+        return super().resolve_command(ctx, args)
 
     def invoke(self, ctx):
         try:

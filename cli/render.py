@@ -59,9 +59,10 @@ RENDER_OPTIONS = (
 @click.argument("houses")
 @click.argument("out")
 @config_options(DatasetConfig, RENDER_OPTIONS)
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Worker processes; with --scheduler local, the LocalCluster's workers; ignored "
-                   "with a remote scheduler.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes (1: render in this process); with --scheduler local, the LocalCluster's "
+                   "workers; ignored with a remote scheduler. Stores are identical whatever the number. "
+                   "[default: one per usable CPU core, at most one per house or shard]")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Run on a Dask cluster: its scheduler address (tcp://host:8786), or `local` to start "
                    "a LocalCluster of --workers processes.")

@@ -63,6 +63,8 @@ class _TrainBar:
         self.bar, self.task = bar, None
 
     def start(self, total: int, done: int) -> None:
+        if not self.bar.live.is_started:
+            self.bar.start()
         self.task = self.bar.add_task("training", total=total, completed=done, loss=float("nan"))
 
     def step(self, step: int, loss: float) -> None:
@@ -72,9 +74,11 @@ class _TrainBar:
 def _train_bar(console):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                    TextColumn("loss {task.fields[loss]:.4f}"), TextColumn("ETA"), TimeRemainingColumn(),
-                    console=console)
+    from .progress import shown_from_first_task
+
+    return shown_from_first_task(Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                          TextColumn("loss {task.fields[loss]:.4f}"), TextColumn("ETA"),
+                                          TimeRemainingColumn(), console=console))
 
 
 @click.command()

@@ -67,6 +67,26 @@ def listed(items, shown: int = 5) -> str:
     return ", ".join(items[:shown]) + more
 
 
+def no_such_path(path, known: tuple[str, ...] = ()) -> str:
+    """``"PATH: no such file or folder"``, with the closest names that do exist beside it
+    (or among ``known``, e.g. ``bundled:toy``) as a suggestion: a typo gets its fix."""
+    import difflib
+    from pathlib import Path
+
+    text = str(path)
+    close = difflib.get_close_matches(text, known, n=1) if known else []
+    if not close:
+        parent = Path(text).parent
+        try:
+            names = sorted(p.name for p in parent.iterdir()) if parent.is_dir() else []
+        except OSError:
+            names = []
+        close = [str(parent / n) if str(parent) != "." else n
+                 for n in difflib.get_close_matches(Path(text).name, names, n=2)]
+    hint = f" (did you mean {' or '.join(close)}?)" if close else ""
+    return f"{text}: no such file or folder{hint}"
+
+
 def plural(n: int, word: str, many: str | None = None) -> str:
     """``"1 house"``, ``"2 houses"`` (``many``: the plural when it is not ``word + "s"``):
     counts in messages, library and CLI alike."""

@@ -57,3 +57,31 @@ def test_ctrl_c_says_how_to_resume(monkeypatch, tmp_path):
     res = run("render", "bundled:toy", tmp_path / "out.zarr")
     assert res.exit_code == EXIT_INTERRUPTED
     assert res.output.strip().splitlines() == ["interrupted: run the same command again to resume"]
+
+
+def test_an_early_error_is_the_only_line_no_blank_line_before_it(tmp_path):
+    # the progress bar appears with the first step: a command refused before it prints no empty bar line
+    cases = [
+        (("render", tmp_path / "nothing", tmp_path / "o.zarr"), "no such file or folder"),
+        (("reconstruct", tmp_path / "run", tmp_path / "photos", tmp_path / "out"), ""),
+        (("predict", tmp_path, tmp_path / "none.zarr", tmp_path / "p.zarr"), ""),
+        (("train", tmp_path / "none.zarr", "--stage", "depth", "--run", tmp_path / "r"), ""),
+    ]
+    for args, words in cases:
+        res = run(*args)
+        assert res.exit_code in (1, 2), (args, res.output)
+        lines = res.output.splitlines()
+        if res.exit_code == 1:
+            assert len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], (args, res.output)
+
+
+def test_typos_get_a_suggestion(tmp_path):
+    res = run("rendr", "bundled:toy", tmp_path / "o.zarr")
+    assert res.exit_code == 2 and "No such command 'rendr'. Did you mean 'render'?" in res.output
+    res = run("houses", "inspect", "bundled:toyy")
+    assert res.exit_code == 1
+    assert res.output.splitlines() == ["error: bundled:toyy: no such file or folder (did you mean bundled:toy?)"]
+    (tmp_path / "kitchen").mkdir()
+    res = run("houses", "inspect", tmp_path / "kitchn")
+    assert res.output.splitlines() == [
+        f"error: {tmp_path / 'kitchn'}: no such file or folder (did you mean {tmp_path / 'kitchen'}?)"]

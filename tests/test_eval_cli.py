@@ -170,3 +170,18 @@ def test_a_split_without_training_houses_in_the_truth_is_one_red_line(store, tmp
     assert res.exit_code == 1 and res.output.count("\n") == 1, res.output
     assert "holds no view of the 1 training houses" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "p.png").exists()
+
+
+def test_plots_default_beside_the_store_not_into_the_current_folder(store, tmp_path, monkeypatch):
+    import shutil
+
+    copy = tmp_path / "data" / "mine.zarr"
+    shutil.copytree(store, copy)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    res = run("evaluate", "voxels", copy, "--resolution", 20, "--size", 10, "--limit", 1)
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "data" / "mine.voxel_iou.png").stat().st_size > 1000
+    assert f"histogram: {tmp_path / 'data' / 'mine.voxel_iou.png'}" in res.output
+    assert list(here.iterdir()) == []

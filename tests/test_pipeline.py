@@ -497,3 +497,12 @@ def test_worker_processes_get_single_threaded_blas_and_the_malloc_thresholds():
     assert not {k for k in executors.MALLOC_THRESHOLDS if k in os.environ}, "the parent's environment is restored"
     if sys.platform.startswith("linux"):
         assert executors.tune_allocator()
+
+
+def test_render_uses_every_usable_core_by_default_but_no_idle_worker(monkeypatch):
+    import os
+
+    from sceneforge.pipeline.executors import default_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    assert [default_workers(t) for t in (0, 1, 3, 4, 100)] == [1, 1, 3, 4, 4]

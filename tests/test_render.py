@@ -618,3 +618,12 @@ def test_doctor_passes_here():
     for check in ("EGL devices", "OpenGL on EGL device", "one-frame render", "ray tracing", "open3d", "zarr", "torch"):
         assert any(line.startswith("PASS") and check in line for line in res.output.splitlines()), check
     assert "torch CUDA" in res.output
+
+
+def test_doctor_counts_warnings_apart_from_passes():
+    from sceneforge.cli.doctor import Check, summary_line
+
+    assert summary_line([Check("PASS", "a", ""), Check("WARN", "b", "")]) == "2 checks: 1 passed, 1 warning"
+    assert summary_line([Check("PASS", "a", ""), Check("FAIL", "b", ""), Check("FAIL", "c", "")]) == \
+        "3 checks: 1 passed, 2 failed"
+    assert summary_line([Check("PASS", "a", "")]) == "1 check: 1 passed"

@@ -24,7 +24,7 @@ from collections import Counter
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from ..errors import HouseError, SceneforgeError, UnknownFormatError
+from ..errors import HouseError, SceneforgeError, UnknownFormatError, no_such_path
 from .formats import REGISTRY, UNREADABLE, HouseSource, find
 from .model import House, Instance, Level, Material, Room, make_instance
 
@@ -86,7 +86,7 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
     """
     path = bundled_toy_dir() if str(path) == BUNDLED_TOY else Path(path)
     if not path.exists():
-        raise SceneforgeError(f"{path}: no such file or folder")
+        raise SceneforgeError(no_such_path(path, (BUNDLED_TOY,)))
     if fmt is not None and fmt not in FORMATS:
         raise UnknownFormatError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
     found = find(path, None if fmt is None else REGISTRY[fmt])

@@ -51,7 +51,7 @@ from typing import TYPE_CHECKING, Callable, Protocol
 from ..store import StoreWriter, location_errors
 from ..store.guard import check_apart, check_store_output
 from .assign import Plan, ViewPlan
-from .executors import executor
+from .executors import default_workers, executor
 from .finalize import finalize_store
 from .inputs import InputChanges
 from .plan import check_camera_folder, plan_house, plan_houses
@@ -112,7 +112,7 @@ def render_dataset(
     out: str,
     config: "DatasetConfig",
     *,
-    workers: int = 1,
+    workers: int | None = 1,
     scheduler: str | None = None,
     overwrite: bool = False,
     update: bool = False,
@@ -126,6 +126,8 @@ def render_dataset(
 
     houses       : anything :func:`~sceneforge.houses.discover` takes (a folder, ``bundled:toy``, ...)
     out          : local path or fsspec URL of the store
+    workers      : processes (1: this one); None = one per usable core, at most one per house
+                   or shard (:func:`~.executors.default_workers`)
     update       : when houses changed, were added or removed since the store (or the
                    unfinished run) was made, redo exactly those (else that is refused)
     retry_failed : plan and render the houses that failed again
@@ -150,6 +152,9 @@ def render_dataset(
     sources = discover(houses, config.houses.format)
     if config.cameras is not None:
         check_camera_folder(config.cameras, [s.id for s in sources])
+    if workers is None:
+        shards = -(-len(sources) * config.views_per_house // config.store.views_per_shard)
+        workers = default_workers(max(len(sources), shards))
     try:
         with writer, location_errors(writer.url):  # S3 gone mid-run: one line, as at the start
             prep = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite=overwrite,

@@ -41,6 +41,17 @@ def tune_allocator() -> bool:
     return all(mallopt(_MALLOPT[k], int(v)) == 1 for k, v in MALLOC_THRESHOLDS.items())
 
 
+def default_workers(tasks: int) -> int:
+    """``render --workers``'s default: a process per core this process may use, at most one
+    per task (a house to plan, a shard to render): on 2 cores 2 workers render the toy
+    houses 1.7× as fast as one (docs/benchmarks.md), and an idle worker only costs memory."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, tasks))
+
+
 def _worker_env(workers: int) -> dict[str, str]:
     """Environment of ``workers`` local worker processes: single-threaded BLAS, and the
     cores shared out among the workers' ray tracers (Open3D would otherwise give each
