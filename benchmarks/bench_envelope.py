@@ -1,4 +1,4 @@
-"""Seconds per view for the envelope's ground truth: the D5 surface (SPEC §5).
+"""Seconds per view for the envelope's ground truth: the D5 surface (docs/spec.md §5.2).
 
 What it costs on top of a view, measured in one run on the bundled toy houses (the same
 cameras for every line): the frontal layers of the view (its own D5 among them), the

@@ -1,4 +1,4 @@
-"""Seconds per view of the evaluation (SPEC §11) at the default settings, against baselines.
+"""Seconds per view of the evaluation (docs/spec.md §11) at the default settings, against baselines.
 
 - **Coverage** (paper Table 1: six layer unions × two ground truths, 10 000 samples/m²,
   61 thresholds): sceneforge meshes, samples and measures each part of a view once and

@@ -1,4 +1,4 @@
-"""Milliseconds per 320×240 RGB frame in each mode, and resident memory over a long run (SPEC §8).
+"""Milliseconds per 320×240 RGB frame in each mode, and resident memory over a long run (docs/spec.md §8).
 
 In one run on the same scenes and cameras:
 

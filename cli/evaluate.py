@@ -1,4 +1,4 @@
-"""``sceneforge evaluate``: score layer reconstructions against the ground-truth meshes (SPEC §11)."""
+"""``sceneforge evaluate``: score layer reconstructions against the ground-truth meshes (docs/spec.md §11)."""
 
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def _write(report, text, plot, json_path, title, extra: dict | None = None):
 @click.group()
 def evaluate():
     """Score reconstructions from depth layers against the ground-truth meshes of a store:
-    surface precision/recall (paper Table 1 and the table of §5) and voxel IoU."""
+    surface precision/recall (paper Table 1 and the table of paper §5) and voxel IoU."""
 
 
 @evaluate.command()
@@ -150,7 +150,7 @@ def _house_split(split_file: str | None, pred, gt: str):
               help="The split file. [default: the one PRED was predicted with, else split.json beside GT]")
 def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     """Precision and recall of predicted layers (PRED, written by `sceneforge predict` in
-    the store layout) against the ground-truth meshes of GT (the paper's table in §5): D1,
+    the store layout) against the ground-truth meshes of GT (the table of paper §5): D1,
     D1 & overhead, D1-4 and D1-4 & overhead against objects, beside the paper's SUNCG
     numbers, on the test houses by default. Cameras and overhead cameras are PRED's; view
     i of PRED must be view i of GT.

@@ -1,4 +1,4 @@
-"""The seeded camera sampler (SPEC §3): cameras placed per room of a house, each candidate
+"""The seeded camera sampler (docs/spec.md §3): cameras placed per room of a house, each candidate
 traced and checked, the best kept (:func:`sample_cameras`, set by :class:`CameraSamplerConfig`).
 Its generator is passed in; the cameras themselves are :class:`sceneforge.cameras.Camera`.
 """
@@ -438,7 +438,7 @@ def sample_cameras(
     config: CameraSamplerConfig | None = None,
     tracer: "HouseTracer | None" = None,
 ) -> tuple[list[Camera], SamplerReport]:
-    """Sample up to ``n`` cameras over the house's rooms, the most informative first (SPEC §3).
+    """Sample up to ``n`` cameras over the house's rooms, the most informative first (docs/spec.md §3).
 
     **Rooms.** Every room with a floor gets its share of the ``n`` cameras (equal shares,
     the remainder to the largest floors); floors without a room are sampled per level;

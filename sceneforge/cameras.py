@@ -1,5 +1,5 @@
-"""Pinhole cameras: intrinsics, poses and PBRS camera files (SPEC §1); the seeded camera
-sampler that places them in a house is :mod:`sceneforge.camera_sampler` (SPEC §3).
+"""Pinhole cameras: intrinsics, poses and PBRS camera files (docs/spec.md §1); the seeded camera
+sampler that places them in a house is :mod:`sceneforge.camera_sampler` (docs/spec.md §3).
 
 The conventions cameras follow are defined in :mod:`sceneforge.conventions` (OpenCV axes
 ``CAMERA_AXES``, pixel centres at integer + ``PIXEL_CENTRE``, planar depth). This module
@@ -22,7 +22,7 @@ import numpy as np
 from .conventions import tol
 from .errors import SceneforgeError
 
-#: PBRS default horizontal half field of view, radians (SPEC §1).
+#: PBRS default horizontal half field of view, radians (docs/spec.md §1).
 DEFAULT_HALF_FOV_X = 0.5534
 #: PBRS default downward pitch: the view direction drops 1 m per 5 m (11.31°).
 DEFAULT_PITCH = math.atan(0.2)
@@ -170,7 +170,7 @@ def default_intrinsics(
     """(3, 3) float64 PBRS-style intrinsics: square pixels, principal point at the image centre.
 
     With the defaults, fx = fy = 160 / tan(0.5534) ≈ 259.0 px and the vertical half-FOV is
-    atan(120 / fy) ≈ 0.4339 rad (SPEC §1).
+    atan(120 / fy) ≈ 0.4339 rad (docs/spec.md §1).
     """
     if not 0 < half_fov_x < math.pi / 2:
         raise ValueError(f"half_fov_x must be in (0, pi/2) radians, got {half_fov_x}")

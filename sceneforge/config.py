@@ -103,9 +103,9 @@ class StoreConfig:
     codec: typing.Literal["blosc-zstd-per-array", "blosc-zstd", "zstd"] = "blosc-zstd-per-array"
     #: compression level of every array (1 fastest; 9 smallest with Blosc, 22 with plain zstd)
     compression_level: int = 3
-    #: also store the first-hit normals (N, 3, H, W) float32, camera frame (SPEC §4.6)
+    #: also store the first-hit normals (N, 3, H, W) float32, camera frame (docs/spec.md §4.6)
     normals: bool = False
-    #: the views whose ground-truth meshes (SPEC §5, what only `evaluate` reads) the store keeps:
+    #: the views whose ground-truth meshes (docs/spec.md §5, what only `evaluate` reads) the store keeps:
     #: "none" (evaluate makes them from the houses the store records for the views it scores, and
     #: caches them beside the store) or "all"
     gt_mesh: typing.Literal["all", "none"] = "none"

@@ -1,4 +1,4 @@
-"""Conventions, defined once here and referred to everywhere else (SPEC §1).
+"""Conventions, defined once here and referred to everywhere else (docs/spec.md §1).
 
 Every convention below is a constant or a function of this module; other modules and
 docstrings refer to it rather than restating it, and a store records them through
@@ -79,12 +79,12 @@ ENVELOPE_LAYER: int = 4
 #: The layers whose surface's NYU40 class is stored (``category`` arrays): D1, D3, D5.
 CLASS_LAYERS: tuple[int, ...] = (*FRONT_LAYERS, ENVELOPE_LAYER)
 #: Per layer, the layer whose support is its mask: M1 = M2 = finite D1, M3 = M4 = finite D3,
-#: M5 = finite D5 (SPEC §4.4).
+#: M5 = finite D5 (docs/spec.md §4.4).
 MASK_LAYERS: tuple[int, ...] = (0, 0, 2, 2, 4)
 
 #: Length unit of every coordinate and depth.
 UNITS = "metres"
-#: World up axis (SPEC §1); Z-up sources are converted at load time.
+#: World up axis (docs/spec.md §1); Z-up sources are converted at load time.
 UP = "+Y"
 #: Camera axes of every pose and camera frame (OpenCV); poses are ``cam_to_world``.
 CAMERA_AXES: dict[str, str] = {"x": "right", "y": "down", "z": "forward"}
@@ -145,13 +145,13 @@ SEG_TO_NYU40: tuple[int, ...] = tuple(0 if c == SEG_BACKGROUND else c + 1 for c 
 class Tolerances:
     """Every tolerance of the project: metres unless a field says otherwise."""
 
-    #: hits of the same instance closer than this along a ray count once (SPEC §4)
+    #: hits of the same instance closer than this along a ray count once (docs/spec.md §4)
     same_instance_hit: float = 1e-4
     #: object hits within this distance behind the first envelope hit still count (a rug)
     envelope_slack: float = 1e-3
-    #: frustum clipping plane tolerance (SPEC §5)
+    #: frustum clipping plane tolerance (docs/spec.md §5.1)
     clip: float = 1e-4
-    #: faces whose vertices lie further than this behind D5 are dropped (SPEC §5)
+    #: faces whose vertices lie further than this behind D5 are dropped (docs/spec.md §5.1)
     behind_envelope: float = 0.1
     #: triangles with less area than this (m²) are degenerate and dropped at load time
     degenerate_area: float = 1e-12

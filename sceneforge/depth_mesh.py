@@ -1,7 +1,7 @@
-"""Depth map → triangles: the 2×2 block rule and the edge rule (SPEC §11, *(ref)*).
+"""Depth map → triangles: the 2×2 block rule and the edge rule (docs/spec.md §11.1, *(ref)*).
 
 The one triangulation kernel of sceneforge. The ground truth uses it to turn the envelope
-layer D5 into the envelope's ground-truth surface (SPEC §5, :func:`sceneforge.frustum.envelope_surface`);
+layer D5 into the envelope's ground-truth surface (docs/spec.md §5.2, :func:`sceneforge.frustum.envelope_surface`);
 the evaluation uses it to turn every layer it scores into a mesh
 (:mod:`sceneforge.evaluate.depth_mesh`).
 

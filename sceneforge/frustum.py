@@ -1,4 +1,4 @@
-"""Frustum planes, triangle clipping and the ground-truth mesh of one view (SPEC §5).
+"""Frustum planes, triangle clipping and the ground-truth mesh of one view (docs/spec.md §5).
 
 The ground truth a reconstruction is scored against is what the view can see *(ref)*:
 
@@ -9,7 +9,7 @@ The ground truth a reconstruction is scored against is what the view can see *(r
   is the reference rule);
 - **envelope**: not the envelope polygons but the D5 layer itself as a surface
   (:func:`envelope_surface`): D5 traced at 1.5× the view's resolution and triangulated
-  by the depth → mesh rule of SPEC §11 (:mod:`sceneforge.depth_mesh`) at ``a = 15``. The
+  by the depth → mesh rule of docs/spec.md §11.1 (:mod:`sceneforge.depth_mesh`) at ``a = 15``. The
   polygons behind the visible envelope — back faces of thin walls, the next room's wall
   skin, floor-slab undersides — are seen by no layer, yet lie within the 0.1 m margin of
   the object rule, so by that rule they would be ground truth that nothing can cover.
@@ -66,7 +66,7 @@ class ViewMeshConfig:
     max_edge_pixels: float | None = 4.0
     #: the envelope is D5 traced at this many times the view's width and height (the reference: 1.5)
     envelope_upscale: float = 1.5
-    #: edge factor of the depth → mesh rule (SPEC §11) the traced D5 is triangulated with (the reference: 15)
+    #: edge factor of the depth → mesh rule (docs/spec.md §11.1) the traced D5 is triangulated with (the reference: 15)
     envelope_a: float = 15.0
 
     def __post_init__(self):
@@ -613,7 +613,7 @@ def drop_behind_envelope(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Remove what projects more than ``config.behind_envelope`` behind ``D5``.
 
-    A face goes when any vertex does (SPEC §5). A face straddling an occlusion boundary
+    A face goes when any vertex does (docs/spec.md §5.1). A face straddling an occlusion boundary
     (a big wall triangle half hidden by a door jamb) would take its visible part with it,
     so a face that fails is bisected along its longest edge and its halves are tested
     again, down to edges of ``config.max_edge_pixels``; only the pieces that still fail
@@ -781,11 +781,11 @@ def _clipped_meshes(house, id_lists, camera, planes, d5, limit, config: ViewMesh
 
 def envelope_surface(tracer: "HouseTracer", camera: "Camera", config: ViewMeshConfig | None = None,
                      compiled: bool | None = None) -> ClippedMesh:
-    """The envelope's ground truth of a view (SPEC §5): the D5 layer as a surface.
+    """The envelope's ground truth of a view (docs/spec.md §5.2): the D5 layer as a surface.
 
     D5 (each ray's first envelope hit, a first-hit query) is traced from ``camera`` at
     ``config.envelope_upscale`` times its resolution (same pose and field of view,
-    :meth:`Camera.resized`) and triangulated by the depth → mesh rule of SPEC §11 at
+    :meth:`Camera.resized`) and triangulated by the depth → mesh rule of docs/spec.md §11.1 at
     ``config.envelope_a`` (:func:`sceneforge.depth_mesh.grid_faces`). Pixels whose ray
     leaves the house give no vertex. Each face's ``instance`` is the envelope instance
     its first corner pixel sees (the block's top-left pixel, or its top-right one).
@@ -811,12 +811,12 @@ def mesh_provenance(config: ViewMeshConfig, width: int, height: int) -> dict:
     upscaled = f"{round(width * config.envelope_upscale)}x{round(height * config.envelope_upscale)}"
     return {
         "objects": {
-            "rule": "layer instances clipped to the frustum, faces behind D5 dropped (SPEC 5)",
+            "rule": "layer instances clipped to the frustum, faces behind D5 dropped (docs/spec.md §5.1)",
             "behind_envelope": config.behind_envelope, "max_edge_pixels": config.max_edge_pixels,
         },
         "envelope": {
             "rule": "D5 surface: D5 traced at envelope_upscale x the view resolution, "
-                    "triangulated by the depth to mesh rule at edge factor envelope_a (SPEC 5, 11)",
+                    "triangulated by the depth to mesh rule at edge factor envelope_a (docs/spec.md §5.2, §11.1)",
             "envelope_upscale": config.envelope_upscale, "resolution": upscaled, "envelope_a": config.envelope_a,
         },
     }
@@ -825,7 +825,7 @@ def mesh_provenance(config: ViewMeshConfig, width: int, height: int) -> dict:
 def object_mesh(
     house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None
 ) -> ClippedMesh:
-    """The objects' ground truth of a view (SPEC §5).
+    """The objects' ground truth of a view (docs/spec.md §5.1).
 
     The instances that fill a frontal layer (ids in ``layers.instance``), clipped to the
     frustum (:func:`frustum_planes`); faces with any vertex projecting more than
@@ -853,7 +853,7 @@ def view_mesh(
     house: "House", camera: "Camera", layers: "Layers", config: ViewMeshConfig | None = None,
     tracer: "HouseTracer | None" = None,
 ) -> ViewMesh:
-    """The ground-truth mesh of one view (SPEC §5): :func:`object_mesh` and
+    """The ground-truth mesh of one view (docs/spec.md §5): :func:`object_mesh` and
     :func:`envelope_surface`, traced with ``tracer`` (a :class:`~sceneforge.raytrace.HouseTracer`
     of ``house``, built here when omitted)."""
     from .raytrace import HouseTracer

@@ -1,4 +1,4 @@
-"""Frontal multi-layer depth: all hits of a view → D1..D5, masks, classes, instances (SPEC §4).
+"""Frontal multi-layer depth: all hits of a view → D1..D5, masks, classes, instances (docs/spec.md §4).
 
 Per pixel, from the ray's hits sorted by distance ``t``:
 
@@ -65,7 +65,7 @@ class Layers:
     @property
     def masks(self) -> np.ndarray:
         """(5, H, W) bool support of each layer: M1 = M2 = finite D1, M3 = M4 = finite D3,
-        M5 = finite D5 (SPEC §4.4, ``conventions.MASK_LAYERS``)."""
+        M5 = finite D5 (docs/spec.md §4.4, ``conventions.MASK_LAYERS``)."""
         return np.isfinite(self.depth)[list(MASK_LAYERS)]
 
     @property
@@ -107,7 +107,7 @@ def layers_from_hits(
     keep=None,
     normals=None,
 ) -> Layers:
-    """Apply the layer rules of SPEC §4 to every pixel at once.
+    """Apply the layer rules of docs/spec.md §4 to every pixel at once.
 
     hits          : all hits of the H*W rays of a view, rays in row-major pixel order
     depth_scale   : (H*W,) float   planar depth = ``t * depth_scale`` (1 for orthographic)
@@ -115,7 +115,7 @@ def layers_from_hits(
     inst_envelope : (n_instances,) bool   envelope flag per instance
     shape         : (H, W)
     keep          : (k,) bool, optional  hits to use; the others are removed before any rule
-                    runs (the overhead view drops ceilings, walls, ... this way, SPEC §7)
+                    runs (the overhead view drops ceilings, walls, ... this way, docs/spec.md §7.1)
     normals       : (H*W, 3) float, optional  first-hit normals in the camera frame, NaN
                     where none; copied into ``Layers.normal`` (NaN everywhere when omitted)
     """
@@ -155,7 +155,7 @@ def layers_from_hits(
 def layers_from_frontal(
     hits: "FrontalHits", depth_scale, inst_category, shape: tuple[int, int], normals=None
 ) -> Layers:
-    """The layers of SPEC §4 from a :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`
+    """The layers of docs/spec.md §4 from a :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`
     (the same as :func:`layers_from_hits` on every hit, without sorting the closing hits in).
 
     hits          : the frontal query of the H*W rays of a view, row-major pixel order
@@ -184,7 +184,7 @@ def apply_rules(
     offsets, t, inst, closing_t, closing_inst, depth_scale, inst_category, shape, normals=None,
     compiled: bool | None = None,
 ) -> Layers:
-    """SPEC §4 rules 2–3 on the object hits a ray's closing hit lets through.
+    """The layer rules of docs/spec.md §4.2–§4.3 on the object hits a ray's closing hit lets through.
 
     offsets, t, inst        : object hits in CSR layout (as :class:`~sceneforge.raytrace.Hits`),
                               sorted per ray by distance; none beyond the closing hit + slack

@@ -1,6 +1,6 @@
 """Everything for one view of one house: ``compute_view(house, camera, config)``, no I/O.
 
-The frontal layers (SPEC §4), the ground-truth mesh (§5), the overhead camera (§6) and the
+The frontal layers (docs/spec.md §4), the ground-truth mesh (§5), the overhead camera (§6) and the
 overhead ground truth (§7), in that order, all from one :class:`HouseTracer` that the
 caller builds once per house and reuses for every view.
 """

@@ -1,4 +1,4 @@
-"""Cameras: SPEC §1 defaults, rays and projection, OpenCV/OpenGL, PBRS files, the sampler."""
+"""Cameras: docs/spec.md §1 defaults, rays and projection, OpenCV/OpenGL, PBRS files, the sampler."""
 
 from __future__ import annotations
 

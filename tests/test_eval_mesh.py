@@ -1,4 +1,4 @@
-"""Depth layers → meshes: the 2×2 triangulation, the edge rule, world coordinates (SPEC §11)."""
+"""Depth layers → meshes: the 2×2 triangulation, the edge rule, world coordinates (docs/spec.md §11.1)."""
 
 from __future__ import annotations
 

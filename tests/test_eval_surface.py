@@ -1,4 +1,4 @@
-"""Surface sampling, point-to-mesh distance, precision/recall and the coverage variants (SPEC §11)."""
+"""Surface sampling, point-to-mesh distance, precision/recall and the coverage variants (docs/spec.md §11)."""
 
 from __future__ import annotations
 
@@ -140,7 +140,7 @@ def test_coverage_of_ground_truth_layers_grows_with_the_layers(small_house):
                         COVERAGE_VARIANTS, np.random.default_rng(0), SurfaceConfig(density=2_000))
     recall = scores.recall[:, 0, -1]  # against objects + envelope, at 5 cm
     assert (np.diff(recall) >= 0).all(), recall
-    # the envelope layer adds the room: its ground truth is the D5 surface itself (SPEC §5),
+    # the envelope layer adds the room: its ground truth is the D5 surface itself (docs/spec.md §5),
     # which D5 covers whole; what stays uncovered are object faces that no layer sees (the
     # object ground truth keeps every face of a visible object in front of D5)
     assert recall[3] < 0.5 and recall[4] > 0.98
@@ -155,7 +155,7 @@ def test_coverage_of_ground_truth_layers_grows_with_the_layers(small_house):
 
 
 def test_the_overhead_mesh_is_cut_to_the_frontal_frustum(small_house):
-    """The ground-truth mesh ends at the frustum's side and near planes (SPEC §5), so the
+    """The ground-truth mesh ends at the frustum's side and near planes (docs/spec.md §5), so the
     overhead map's mesh is cut there too: what lies outside can never be near the truth."""
     from dataclasses import replace
 

@@ -1,4 +1,4 @@
-"""Voxel IoU: layer intervals and solid mesh occupancy in the camera's grid (SPEC §11)."""
+"""Voxel IoU: layer intervals and solid mesh occupancy in the camera's grid (docs/spec.md §11.4)."""
 
 from __future__ import annotations
 
@@ -90,7 +90,7 @@ def test_interpenetrating_closed_parts_fill_their_union():
 
 
 def test_frustum_clipped_mesh_voxelises_like_the_whole_one():
-    # a box reaching out of the left of the image, cut at the frustum as in SPEC §5: the
+    # a box reaching out of the left of the image, cut at the frustum as in docs/spec.md §5.1: the
     # cut leaves it open, but rays from the camera never cross the cut
     lo, hi = np.array([-2.0, -0.25, 2.0]), np.array([0.0, 0.25, 3.0])
     whole = box_mesh(lo, hi)

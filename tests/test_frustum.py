@@ -1,4 +1,4 @@
-"""Frustum planes, triangle clipping and the ground-truth mesh of a view (SPEC §5)."""
+"""Frustum planes, triangle clipping and the ground-truth mesh of a view (docs/spec.md §5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""D1..D5 on tiny box scenes with exact answers (SPEC §4), and fast vs reference engines on
+"""D1..D5 on tiny box scenes with exact answers (docs/spec.md §4), and fast vs reference engines on
 every pixel of every layer."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-"""The overhead camera (SPEC §6) and overhead ground truth (SPEC §7).
+"""The overhead camera (docs/spec.md §6) and overhead ground truth (docs/spec.md §7).
 
-Expected boxes are worked out by hand from the SPEC formulas in the comments.
+Expected boxes are worked out by hand from the formulas of docs/spec.md §6 in the comments.
 """
 
 from __future__ import annotations
@@ -350,7 +350,7 @@ def test_frontal_points_are_the_pixels_back_projected_into_the_gravity_frame(hol
 
 
 def plain_frontal_points(house, camera, layers, frame, config):
-    """frontal_points_fast as SPEC §6 reads, one layer and one pixel rule at a time.
+    """frontal_points_fast as docs/spec.md §6 reads, one layer and one pixel rule at a time.
 
     A pixel's point at planar depth z is z times its ray's point at depth 1 in the frame
     (``_frame_rays``; the test above pins those rays to the back-projected world points).

@@ -1,4 +1,4 @@
-"""RGB rendering through pyrender/EGL (SPEC §8): pixel-aligned with the ray-traced layers,
+"""RGB rendering through pyrender/EGL (docs/spec.md §8): pixel-aligned with the ray-traced layers,
 materials and textures the right way up, per-pixel lights in photometric units, one
 exposure and tone-mapping step, one renderer reused across houses, and one-line errors
 when EGL cannot work.

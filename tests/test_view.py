@@ -34,7 +34,7 @@ def first_view(house, tracer):
 
 
 def overhead_keep(house, hits, config):
-    """The slow reference of SPEC §7's filters on every hit of straight-down rays: drop the
+    """The slow reference of the filters of docs/spec.md §7.1 on every hit of straight-down rays: drop the
     instances an overhead view does not see, and floor hits within the clearance."""
     floor = instance_labels(house)[0] == FLOOR
     inst = np.asarray(hits.instance, dtype=np.int64)

@@ -1,4 +1,4 @@
-"""Evaluation of multi-layer depth reconstructions (SPEC §11).
+"""Evaluation of multi-layer depth reconstructions (docs/spec.md §11).
 
 - :mod:`.depth_mesh`: depth layers and overhead height maps → world-space meshes
   (2×2 block triangulation with the edge rule, the kernel in :mod:`sceneforge.depth_mesh`

@@ -13,7 +13,7 @@ point's distance to a union is the smallest of its distances to the parts.
 - **Coverage** (paper Table 1): the variants D1, D1-2, D1-3, D1-4, D1-5 and D1-5 &
   overhead built from *ground-truth* layers; the table is their recall at 5 cm against
   ``all``, averaged over views.
-- **Predictions** (the paper's precision/recall table, §5): D1, D1 & overhead, D1-4 and
+- **Predictions** (the precision/recall table of paper §5): D1, D1 & overhead, D1-4 and
   D1-4 & overhead built from *predicted* layers; the table is their precision and recall
   at 5 cm against ``objects``.
 """
@@ -69,7 +69,7 @@ PREDICTION_VARIANTS: tuple[Variant, ...] = (
     Variant("D1-4", ("D1", "D2", "D3", "D4")),
     Variant("D1-4 & overhead", ("D1", "D2", "D3", "D4", OVERHEAD)),
 )
-#: The paper's precision/recall table (§5): (precision, recall) at 5 cm of predicted layers
+#: The precision/recall table of paper §5: (precision, recall) at 5 cm of predicted layers
 #: against objects, SUNCG.
 PAPER_PREDICTIONS: dict[str, tuple[float, float]] = {
     "D1": (0.525, 0.212), "D1 & overhead": (0.553, 0.275),
@@ -237,7 +237,7 @@ class SurfaceReport:
         return "\n".join(lines)
 
     def predictions_text(self) -> str:
-        """The predictions table (objects only) beside the paper's SUNCG numbers (§5)."""
+        """The predictions table (objects only) beside the paper's SUNCG numbers (paper §5)."""
         p, r = self.table("objects")
         cm = f"{self.config.threshold * 100:g} cm"
         lines = [f"predictions: precision and recall at {cm} against objects, mean over {self.n_views} views",

@@ -1,4 +1,4 @@
-"""Depth layers → triangle meshes in world coordinates (SPEC §11, *(ref)*).
+"""Depth layers → triangle meshes in world coordinates (docs/spec.md §11.1, *(ref)*).
 
 Every pixel with a finite depth becomes a vertex: the point at that depth on the ray
 through the pixel centre. The triangles are those of :func:`sceneforge.depth_mesh.grid_faces`

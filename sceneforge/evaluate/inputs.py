@@ -86,7 +86,7 @@ class EvalView:
         """World-space mesh of every part: D1..D5 and the overhead height map (:data:`PART_NAMES`).
 
         The overhead map's mesh is cut to the frontal camera's frustum (its left, right, top,
-        bottom and near planes), as the ground-truth mesh is (SPEC §5): the paper measures
+        bottom and near planes), as the ground-truth mesh is (docs/spec.md §5.1): the paper measures
         surfaces "within the viewing frustum", and a square overhead map also reaches beside
         the view, where the truth is cut away and nothing it holds can be near it.
         """
@@ -110,7 +110,7 @@ class EvalView:
 
 @dataclass(frozen=True, eq=False)
 class GroundTruthMesh:
-    """The ground-truth mesh of a view (SPEC §5): objects and room envelope apart."""
+    """The ground-truth mesh of a view (docs/spec.md §5): objects and room envelope apart."""
 
     objects: Mesh
     envelope: Mesh

@@ -1,5 +1,5 @@
 """Did the nets learn? Per-pixel scores of predicted views next to a trivial predictor's
-(SPEC §11): what ``sceneforge evaluate predictions`` prints under "learning" and writes
+(docs/spec.md §11.5): what ``sceneforge evaluate predictions`` prints under "learning" and writes
 under the JSON key ``"learning"``.
 
 Three scores, each for the model (the predictions of ``sceneforge predict``) and for a

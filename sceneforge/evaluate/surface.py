@@ -1,4 +1,4 @@
-"""Surface precision and recall between triangle meshes (SPEC §11, paper §5).
+"""Surface precision and recall between triangle meshes (docs/spec.md §11.2, paper §5).
 
 Points are sampled uniformly by area on one mesh (``density`` per m², the number of
 samples rounded down as in the reference) and their distance to the other mesh is

@@ -1,4 +1,4 @@
-"""Voxel IoU of layer intervals against the ground-truth object mesh (SPEC §11, paper supplement).
+"""Voxel IoU of layer intervals against the ground-truth object mesh (docs/spec.md §11.4, paper supplement).
 
 The grid is fixed in the frontal camera's frame (OpenCV axes): ``resolution``³ voxels over
 x, y in [-size/2, size/2] and z in [0, size] — the paper's 400³ voxels of 2.5 cm over a
@@ -16,7 +16,7 @@ interval of the ray (pixel) it projects to.
   voxel of the surface can come out wrong). Per-component parity keeps the union right
   where closed parts interpenetrate (a cushion sunk into a sofa), which parity over the
   whole mesh gets wrong. Rays from the camera matter: the ground-truth mesh is clipped
-  to the frustum (SPEC §5) and its cuts are open; a ray from the camera never crosses the
+  to the frustum (docs/spec.md §5.1) and its cuts are open; a ray from the camera never crosses the
   side planes, while parity along any other direction pairs crossings with missing cuts.
 - **IoU** (:func:`voxel_iou`) counts the voxels whose centre projects into the image:
   outside the frustum nothing is predicted and the ground-truth mesh is cut away.
@@ -287,7 +287,7 @@ def mesh_occupancy(mesh: Mesh, K: np.ndarray, cam_to_world: np.ndarray, shape: t
     The mesh is traced with :func:`mesh_intervals` on rays ``config.supersampling(K)``
     times denser than the (H, W) image, and each voxel takes the answer of the ray nearest
     to it. Rays start at the camera and never cross the frustum's side planes, so a mesh
-    clipped to the frustum (SPEC §5) gives the same intervals as the whole house there.
+    clipped to the frustum (docs/spec.md §5.1) gives the same intervals as the whole house there.
     Returns (R, R, R) bool ``[z, y, x]``.
     """
     config = config or VoxelConfig()

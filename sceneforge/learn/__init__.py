@@ -1,4 +1,4 @@
-"""The paper's models on sceneforge stores (SPEC §10); the only place that imports PyTorch.
+"""The paper's models on sceneforge stores (docs/spec.md §10); the only place that imports PyTorch.
 
 - :mod:`.config`   — the training and prediction configs (no torch: the CLI and the schemas read them)
 - :mod:`.dataset`  — views of one or more stores as training samples, split by house

@@ -1,4 +1,4 @@
-"""The overhead stage's input computed once per view and read back from disk (SPEC §10).
+"""The overhead stage's input computed once per view and read back from disk (docs/spec.md §10.5).
 
 The overhead nets read the EFT of the frozen frontal nets' outputs (232 channels at the
 overhead resolution at the paper's widths). That input depends only on the view (its RGB,

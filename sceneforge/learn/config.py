@@ -1,4 +1,4 @@
-"""The configs of training and prediction runs, without PyTorch (SPEC §10).
+"""The configs of training and prediction runs, without PyTorch (docs/spec.md §10).
 
 They live here, not beside the code that runs them, so that ``sceneforge train --help``
 and ``schemas/train.schema.json`` are built from them without importing torch; the

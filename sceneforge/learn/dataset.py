@@ -1,4 +1,4 @@
-"""Training samples from one or more stores (SPEC §9 → §10).
+"""Training samples from one or more stores (docs/spec.md §9 → §10.1).
 
 - **Lazy reads**: a :class:`StoreDataset` keeps only view indices; each sample reads its
   own chunks of the arrays it needs. Stores are opened on first use in each process and

@@ -1,4 +1,4 @@
-"""Training on several processes: one per GPU, started by ``torchrun`` (SPEC §10).
+"""Training on several processes: one per GPU, started by ``torchrun`` (docs/spec.md §10.5).
 
 ``torchrun --standalone --nproc_per_node N -m sceneforge train STORES ...`` starts N copies
 of the command; each reads its place from the environment torchrun sets (``RANK``,

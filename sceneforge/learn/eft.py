@@ -1,4 +1,4 @@
-"""The Epipolar Feature Transformer: frontal feature maps → the overhead view (SPEC §10).
+"""The Epipolar Feature Transformer: frontal feature maps → the overhead view (docs/spec.md §10.3).
 
 Frames and conventions are those of :mod:`sceneforge.conventions`; what the EFT needs
 of them:

@@ -1,4 +1,4 @@
-"""Training losses (SPEC §10, paper equation 1). Targets use NaN (heights, depths) or
+"""Training losses (docs/spec.md §10.4, paper equation 1). Targets use NaN (heights, depths) or
 :data:`~sceneforge.learn.dataset.EMPTY` (classes) for "no value"; the depth and height
 losses are normalised per example by its own number of valid pixels, then averaged over the
 batch, so a view with little content weighs as much as a full one."""

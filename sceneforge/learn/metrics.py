@@ -1,4 +1,4 @@
-"""Validation metrics beside the loss (SPEC §10): what ``metrics.csv`` logs for a ``val`` row.
+"""Validation metrics beside the loss (docs/spec.md §10.5): what ``metrics.csv`` logs for a ``val`` row.
 
 - per frontal layer ``D1..D5``: absolute relative error ``|pred − true| / true`` and RMSE,
   metres, over the finite targets (``d1_absrel``, ``d1_rmse``, ...);

@@ -1,4 +1,4 @@
-"""The paper's networks (SPEC §10; architectures of the authors' release *(ref)*).
+"""The paper's networks (docs/spec.md §10.2; architectures of the authors' release *(ref)*).
 
 Every network is a U-Net of five levels (full, ½, ¼, ⅛, 1/16 resolution) with skip
 connections and dilated convolutions: the two finest levels use two 5×5 convolutions of

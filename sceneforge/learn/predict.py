@@ -1,4 +1,4 @@
-"""Predictions of trained runs, written in the store layout (SPEC §9, §10).
+"""Predictions of trained runs, written in the store layout (docs/spec.md §9, §10.6).
 
 ``predict(run, store, out)`` runs a run's nets on the views of a store's test houses (the
 run's split file; ``split="all"``: every view) and writes a new store with the same

@@ -2,12 +2,12 @@
 paper's NYUv2 and ScanNet figures).
 
 Every photo is taken by a pinhole camera of known intrinsics (:class:`PhotoCamera`: the
-paper's camera by default, SPEC §1) at a known height above the floor and pitch (roll 0),
+paper's camera by default, docs/spec.md §1) at a known height above the floor and pitch (roll 0),
 set at the origin of its **gravity-aligned frame** (right-handed, metres): +Y up, +Z the
 view direction flattened onto the floor, so the camera's right is -X; the floor is at
 ``y = -height``. The
 run's frozen frontal nets predict D1..D5 and the classes of layers 1 and 3; the overhead
-camera is placed from the predicted layers by the store's heuristics (SPEC §6: depth
+camera is placed from the predicted layers by the store's heuristics (docs/spec.md §6: depth
 statistics and frustum; no rooms are known), or by a camera proposal run; the EFT and the
 overhead nets predict the heights, the floor removed by the overhead segmentation (as
 ``predict``) and the pixels outside the photo's view frustum dropped (the EFT carries
@@ -155,7 +155,7 @@ def _frustum_mask(points: np.ndarray, K: np.ndarray, pose: np.ndarray, width: in
 
 
 def _overhead_camera(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, camera: PhotoCamera, resolution: int):
-    """The overhead camera (SPEC §6) of one photo's predicted layers (5, H, W)."""
+    """The overhead camera (docs/spec.md §6) of one photo's predicted layers (5, H, W)."""
     from sceneforge.cameras import Camera
     from sceneforge.overhead import FrontalPoints, OverheadConfig, gravity_frame, place_overhead_camera
 

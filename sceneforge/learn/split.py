@@ -1,5 +1,5 @@
 """The house split of a set of stores: fixed once, saved, read by every stage, by
-``predict`` and by ``evaluate`` (SPEC §10). No PyTorch: the evaluation reads it.
+``predict`` and by ``evaluate`` (docs/spec.md §10.1). No PyTorch: the evaluation reads it.
 
 A split belongs to the data, not to a run: houses are assigned to ``train``, ``val`` and
 ``test`` with the split's own seed (:class:`~sceneforge.learn.config.SplitConfig`, not the

@@ -1,4 +1,4 @@
-"""The training stages of the paper as objects, by name in :data:`REGISTRY` (SPEC §10).
+"""The training stages of the paper as objects, by name in :data:`REGISTRY` (docs/spec.md §10.5).
 
 A stage says what its runs read, build, freeze, minimise and predict, so that training
 and loading a run (:mod:`.train`) and prediction ask it instead of testing its name

@@ -1,4 +1,4 @@
-"""Training runs: one stage at a time, as in the paper (SPEC §10).
+"""Training runs: one stage at a time, as in the paper (docs/spec.md §10.5).
 
 Stages, in order: ``depth`` and ``seg`` (frontal nets, on RGB), then ``overhead`` (height
 and segmentation nets on the EFT of the *frozen* frontal nets' features) and ``camera``

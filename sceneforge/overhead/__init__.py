@@ -1,8 +1,8 @@
-"""The virtual overhead camera of a frontal view and its ground truth (SPEC §6, §7).
+"""The virtual overhead camera of a frontal view and its ground truth (docs/spec.md §6, §7).
 
 Frames used here:
 
-- **World**: metres, +Y up (SPEC §1).
+- **World**: metres, +Y up (docs/spec.md §1).
 - **Gravity-aligned frame** of a frontal camera (:class:`GravityFrame`): origin at the
   camera centre, coordinates ``(right, up, forward)`` where ``forward`` is the view
   direction flattened onto the floor plane, ``up`` is world +Y and ``right`` is

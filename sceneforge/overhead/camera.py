@@ -1,4 +1,4 @@
-"""The overhead camera (:class:`OverheadCamera`) and its placement from a frontal view (SPEC §6)."""
+"""The overhead camera (:class:`OverheadCamera`) and its placement from a frontal view (docs/spec.md §6)."""
 
 from __future__ import annotations
 
@@ -102,7 +102,7 @@ def place_overhead_camera(
     config: OverheadConfig | None = None,
     floor_source: str | None = None,
 ) -> OverheadCamera:
-    """The overhead camera from a frontal view's points (SPEC §6).
+    """The overhead camera from a frontal view's points (docs/spec.md §6).
 
     tan_half_fov : tan of the frontal camera's horizontal half field of view
     floor_y      : world height of the floor (``tz`` is the camera height above it)
@@ -145,5 +145,5 @@ def overhead_camera_and_points(
 def overhead_camera(
     house: "House", camera: "Camera", layers: Layers, config: OverheadConfig | None = None
 ) -> OverheadCamera:
-    """The overhead camera of a frontal view (SPEC §6)."""
+    """The overhead camera of a frontal view (docs/spec.md §6)."""
     return overhead_camera_and_points(house, camera, layers, config)[0]

@@ -194,7 +194,7 @@ def frontal_points_fast(
 ) -> tuple[FrontalPoints, float, str]:
     """Collect the heuristics' inputs from a frontal view, the view's floor height and its source.
 
-    The plain algorithm (SPEC §6), which ``plain_frontal_points`` in tests/test_overhead.py
+    The plain algorithm (docs/spec.md §6), which ``plain_frontal_points`` in tests/test_overhead.py
     spells out and ``test_frontal_points_fast_equals_the_plain_version_on_toy_views`` holds
     this to bit for bit: every finite pixel of D1..D4 gives the point of its ray at that
     planar depth, in the gravity frame, with the room and the exclusion of its layer's

@@ -1,4 +1,4 @@
-"""The ground truth an overhead camera sees, traced straight down (SPEC §7)."""
+"""The ground truth an overhead camera sees, traced straight down (docs/spec.md §7)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True, eq=False)
 class OverheadTruth:
-    """Ground truth seen by an overhead camera (SPEC §7).
+    """Ground truth seen by an overhead camera (docs/spec.md §7).
 
     layers   : Layers                 5 overhead depth layers (planar = distance below the
                camera), classes and instances, same rules as the frontal ones
@@ -35,7 +35,7 @@ class OverheadTruth:
 
 
 def overhead_instances(house: "House", config: OverheadConfig | None = None) -> np.ndarray:
-    """(n_instances,) bool: the instances an overhead view sees (SPEC §7): objects not of the
+    """(n_instances,) bool: the instances an overhead view sees (docs/spec.md §7.1): objects not of the
     ``truth_excluded`` classes, and floors; no other envelope surface."""
     config = config or OverheadConfig()
     category, envelope = instance_labels(house)
@@ -53,7 +53,7 @@ def overhead_truth(
     origins, directions, depth_scale = camera.rays()
     category, envelope = instance_labels(house)
     seen = overhead_instances(house, config)
-    # The query itself applies SPEC §7's filters: only the instances an overhead view sees,
+    # The query itself applies the filters of docs/spec.md §7.1: only the instances an overhead view sees,
     # and the first floor beyond the clearance closes each ray as the envelope does in a
     # frontal view (tests/test_view.py checks this against tracing every hit and filtering).
     hits = tracer.frontal_query(origins, directions, objects=seen & ~envelope, envelope=seen & envelope,

@@ -1,4 +1,4 @@
-"""The ground-truth meshes of a store's views (SPEC §5) where the store keeps none: made on
+"""The ground-truth meshes of a store's views (docs/spec.md §5.3) where the store keeps none: made on
 demand from the houses the store records, and cached beside it.
 
 Training never reads the meshes, so a store keeps them only when rendered with

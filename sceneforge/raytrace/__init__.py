@@ -1,4 +1,4 @@
-"""Ray tracing a house: every hit of every ray in one traversal (SPEC §4), and first hits.
+"""Ray tracing a house: every hit of every ray in one traversal (docs/spec.md §4), and first hits.
 
 One interface, three engines (like ``trimesh.ray``):
 
@@ -19,8 +19,8 @@ two triangles) are merged into the first of them. An engine with ``collect`` and
 ``first_hit`` methods (the ``embree`` one) does this work itself, operation for operation
 the same.
 
-:meth:`HouseTracer.frontal_query` returns only the hits the frontal layers can use (SPEC §4
-rule 1), split the way the rules read them: a first-hit query against the envelope (the
+:meth:`HouseTracer.frontal_query` returns only the hits the frontal layers can use (docs/spec.md §4.1),
+split the way the rules read them: a first-hit query against the envelope (the
 *closing* hit of each ray) and an all-hit query against the objects, cut just behind the
 closing hit, replace an all-hit query through every wall of the house (on the bundled
 multi-room toy houses a view has 2–6× fewer hits and is traced 1.3–3× faster), with the
@@ -134,7 +134,7 @@ class FirstHit:
 
 @dataclass
 class FrontalHits:
-    """The hits the layer rules use (SPEC §4 rule 1), in the form they read them.
+    """The hits the layer rules use (docs/spec.md §4.1), in the form they read them.
 
     objects : :class:`Hits`  every object hit of each ray, sorted, up to ``tol.envelope_slack``
               behind the ray's closing hit (all of them where there is none)
@@ -565,7 +565,7 @@ class HouseTracer:
         hit (the *closing* hit) and every object hit up to ``tol.envelope_slack`` behind it
         (all object hits where no envelope is hit). :func:`sceneforge.layers.layers_from_frontal`
         gives the same layers from these as :func:`~sceneforge.layers.layers_from_hits` from
-        :meth:`all_hits` (SPEC §4 rule 1 ignores the rest), only faster: a first-hit query
+        :meth:`all_hits` (docs/spec.md §4.1 ignores the rest), only faster: a first-hit query
         against the envelope replaces tracing through every wall of the house, objects far
         behind the closing hit are dropped before any distance is computed, and the closing
         hits never enter the per-ray sort. Where two envelope surfaces are hit first at the same

@@ -28,7 +28,7 @@
 // order: the result does not depend on the thread count.
 //
 // Kernels that read no scene live here too, as the one compiled part of sceneforge: the
-// layer rules of SPEC 4 (sceneforge.layers.apply_rules), the depth -> triangles block rule
+// layer rules of docs/spec.md §4 (sceneforge.layers.apply_rules), the depth -> triangles block rule
 // and compaction (sceneforge.depth_mesh.grid_faces, compact, and both fused with the
 // pixels' points in depth_surface) and the frustum's per-vertex and per-face tests and the
 // renumbering of the kept faces (sceneforge.frustum._vertex_codes, _face_classes,
@@ -1221,7 +1221,7 @@ PyObject* engine_closest(EngineObject* self, PyObject* args) {
 //             closing_instance (n,) i4, depth_scale (n,) or (1,) f8, category (c,) u1,
 //             same_instance f8, depth (5,n) f4 out, category (3,n) u1 out, instance (2,n) i4 out)
 //
-// SPEC 4 rules 2-3 on each ray's object hits (sorted, none beyond the closing hit + slack),
+// The layer rules of docs/spec.md §4.2-§4.3 on each ray's object hits (sorted, none beyond the closing hit + slack),
 // what sceneforge.layers._apply_rules does with whole-array operations, here in one pass
 // over the hits to find the visible instances (each ray's first object hit) and one more
 // for the layers. Every value is computed as there: depths are the float64 product
@@ -1901,7 +1901,7 @@ PyObject* weld_faces(PyObject*, PyObject* args) {
 PyMethodDef module_methods[] = {
     {"layer_rules", layer_rules, METH_VARARGS,
      "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
-     "depth_out, category_out, instance_out): SPEC 4 rules 2-3, as sceneforge.layers._apply_rules"},
+     "depth_out, category_out, instance_out): docs/spec.md §4.2-§4.3, as sceneforge.layers._apply_rules"},
     {"grid_faces", grid_faces, METH_VARARGS,
      "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
      "sceneforge.depth_mesh.grid_faces"},

@@ -1,4 +1,4 @@
-"""RGB images of house views, pixel-aligned with the depth layers (SPEC §8).
+"""RGB images of house views, pixel-aligned with the depth layers (docs/spec.md §8).
 
 Two renderers behind one interface (``render(house, camera) -> (H, W, 3) uint8 sRGB``,
 ``close()``, a context manager), chosen by :func:`open_renderer` from the RGB mode:

@@ -1,4 +1,4 @@
-"""Rasterised RGB (and z-buffer depth) of house views with pyrender through EGL (SPEC §8).
+"""Rasterised RGB (and z-buffer depth) of house views with pyrender through EGL (docs/spec.md §8).
 
 The only module that touches OpenGL. One :class:`Renderer` per worker process renders
 every view of every house: it keeps the GL scene of the current house and rebuilds it,

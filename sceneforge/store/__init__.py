@@ -1,4 +1,4 @@
-"""The dataset store: a zarr v3 group written by ``sceneforge render`` (SPEC §9).
+"""The dataset store: a zarr v3 group written by ``sceneforge render`` (docs/spec.md §9).
 
 The layout is defined once, in ``schemas/store.schema.json``: every array's path, dtype,
 shape (``x-dims``), fill value, source (``x-source``) and meaning. This package reads that

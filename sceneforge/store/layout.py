@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from ..config import DatasetConfig
     from ..view import ViewGroundTruth
 
-SCHEMA_VERSION = "1.1"  # 1.1: the envelope mesh is the D5 surface (SPEC §5), not envelope polygons
+SCHEMA_VERSION = "1.1"  # 1.1: the envelope mesh is the D5 surface (docs/spec.md §5.2), not envelope polygons
 #: the two ground-truth meshes of a view, in the order the store keeps them
 MESH_KINDS: tuple[str, ...] = ("objects", "envelope")
 #: ragged mesh arrays: rows per chunk, and chunks per shard
@@ -126,7 +126,7 @@ def sizes_of(config: "DatasetConfig", n_views: int) -> dict[str, int]:
 
 
 def conventions_attrs() -> dict:
-    """The conventions a store's arrays follow (SPEC §1), as recorded in its attributes:
+    """The conventions a store's arrays follow (docs/spec.md §1), as recorded in its attributes:
     :func:`sceneforge.conventions.record`, built from the constants that define them."""
     return conventions.record()
 

@@ -7,7 +7,7 @@ office, dining room) on one level with ``floor_y = 0``:
   walls and the partitions on its north and east sides, all closed boxes. A wall between
   two rooms is one 0.1 m partition shared by both, each of its faces a wall of one room;
   a floor slab has an underside. Real houses are built so, and their ground truth must
-  leave out what no camera sees (SPEC §5). Floors and ceilings cover the walls' footprint
+  leave out what no camera sees (docs/spec.md §5.2). Floors and ceilings cover the walls' footprint
   too, so no ray can leave through a seam;
 - interior door openings join the rooms into one connected plan; their door leaves stand
   open against the wall. The front door is an exterior opening closed by its leaf, which
