@@ -17,7 +17,7 @@ In one run on the same scenes and cameras:
 - the raster mode's split: ms per frame at 8×6 pixels (our Python, pyrender's and the
   driver's per-draw work, the tone mapping of a few pixels: almost no rasterisation) next to
   320×240, whose difference is the rasteriser's (on Mesa's llvmpipe: CPU threads).
-- ``--figure PNG``: one view of the breakfast room in each mode side by side (the README's),
+- ``--figure PNG``: one view of the breakfast room in each mode side by side (docs/rgb.md's),
   with the fraction of its pixels clipped to white.
 
     python benchmarks/bench_render.py [--views 3] [--frames 500] [--pt-frames 20] [--samples 64]

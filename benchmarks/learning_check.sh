@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Does a model trained on sceneforge's stores learn on houses it never saw? The README's
-# training recipe on a 2-core CPU, in 22 minutes (measured on this project's machine; the target is 25):
+# Does a model trained on sceneforge's stores learn on houses it never saw? The
+# training recipe of docs/learning.md on a 2-core CPU, in 22 minutes (measured on this project's machine; the target is 25):
 #
 #   benchmarks/learning_check.sh HOUSES WORKDIR
 #

@@ -1,4 +1,4 @@
-"""The README's training figure: for each stage's run, its train and validation loss (top)
+"""The training figure of docs/learning.md: for each stage's run, its train and validation loss (top)
 and its validation metric (bottom: D1-D4 abs-rel, segmentation mIoU, overhead height L1
 above 5 cm, camera loss), one column per stage that has a run.
 

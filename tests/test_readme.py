@@ -257,6 +257,57 @@ def test_an_edited_output_fails(tmp_path):
     assert len(problems) == 1 and "-toy_7_000  rooms 4  instances 99" in problems[0], problems
 
 
+FIGURE = re.compile(r"!\[[^\]]*\]\(([^)\s]+\.png)\)")
+
+
+def figures_below_blocks() -> list[tuple[Block, Path, str]]:
+    """(console block, figure, file the block prints) for each figure linked right below a
+    console block (before any other block or heading) whose shown output names a file of the
+    figure's name: the figure is what that block's command draws."""
+    found = []
+    for doc in DOCS:
+        lines = doc.read_text().splitlines()
+        for block in blocks(doc):
+            if block.language != "console":
+                continue
+            after = block.line + len(block.text.splitlines()) + 1  # 0-based: the line after the closing fence
+            for line in lines[after:]:
+                if line.startswith(("```", "#")):
+                    break
+                for target in FIGURE.findall(line):
+                    name = re.escape(Path(target).name)
+                    printed = re.findall(rf"(?<![\w/.…])((?:[\w.-]+/)*{name})\b", block.text)
+                    if printed:
+                        found.append((block, doc.parent / target, printed[-1]))
+    return found
+
+
+def different_pixels(a: Path, b: Path) -> float:
+    """The share of pixels of two same-sized PNGs that differ by more than 32 levels in a
+    channel (antialiasing and font rendering may differ by machine; boxes and points do not)."""
+    Image = pytest.importorskip("PIL.Image")
+    import numpy as np
+
+    pa, pb = (np.asarray(Image.open(p).convert("RGB"), dtype=np.int16) for p in (a, b))
+    assert pa.shape == pb.shape, f"{a.name} is {pa.shape[1]}×{pa.shape[0]}, {b} is {pb.shape[1]}×{pb.shape[0]}"
+    return float((np.abs(pa - pb).max(axis=2) > 32).mean())
+
+
+def test_figures_are_what_the_blocks_above_them_draw(tmp_path):
+    """A figure right below a console block that prints a file of its name (the overhead camera's
+    boxes, a house preview) is that file: the block run again on a fresh checkout prints what it
+    shows and draws the figure."""
+    pytest.importorskip("matplotlib")
+    pairs = figures_below_blocks()
+    assert {figure.name for _, figure, _ in pairs} >= {"overhead_camera.png", "toy_0_000.png"}, pairs
+    cwd = fresh_checkout(tmp_path)
+    for block, figure, printed in pairs:
+        assert run_block(block, cwd) == []
+        share = different_pixels(figure, cwd / printed)
+        assert share < 0.005, f"{block.where}: {figure.relative_to(ROOT)} is not what the block draws " \
+                              f"({printed}): {share:.1%} of the pixels differ"
+
+
 def test_named_benchmarks_and_scripts_exist():
     """Every ``python benchmarks/X.py --opt`` (or scripts/) a page names exists and takes
     those options: a figure names the command that printed it."""

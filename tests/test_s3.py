@@ -221,7 +221,7 @@ def test_a_killed_render_resumes_to_the_local_arrays(s3, config_file, local_dige
 
 
 def test_a_dask_clusters_workers_write_one_store_on_s3(s3, local_digests, tmp_path):
-    """README "On a cluster": a scheduler and two worker processes of their own, each reaching
+    """docs/store.md "On a cluster": a scheduler and two worker processes of their own, each reaching
     S3 through its own environment as on other machines, and `render --scheduler ADDRESS`:
     the workers write their shards into the bucket, and the store holds a local render's
     arrays (RGB left out: the workers would each start a renderer)."""

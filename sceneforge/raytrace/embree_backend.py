@@ -53,7 +53,7 @@ class EmbreeBackend:
         if _embree is None:
             raise MissingDependencyError(
                 "sceneforge's Embree extension", "the embree ray-tracing engine",
-                "apt-get install libembree-dev g++, then pip install -e . again (see README)")
+                "apt-get install libembree-dev g++, then pip install -e . again (see docs/install.md)")
         self._triangles = triangles
         shift = 0.5 * (triangles.vertices.min(axis=0) + triangles.vertices.max(axis=0))
         self._engine = _embree.Engine(

@@ -1,6 +1,6 @@
 """A real S3 API on this machine for the tests: moto's server in a subprocess.
 
-The object-store tests and the README's S3 blocks run against it, so they need no AWS
+The object-store tests and the S3 blocks of docs/store.md run against it, so they need no AWS
 account and no service started beforehand (CI runs on a clean machine): :func:`local_s3`
 starts ``python -m moto.server`` on a free localhost port, waits until it answers, and
 stops it when the block ends. A client reaches it through the standard variables
