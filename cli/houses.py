@@ -30,24 +30,28 @@ def houses():
 def inspect(path, config, preview_dir, show_cameras):
     """Print a table per house in PATH: instances per NYU40 class, triangles, rooms,
     bounding box, the names that fell to void (with their share of the triangles) and
-    problems found (no floor, no walls, no rooms, loader warnings). Houses are read as
-    `sceneforge render` reads them (the `houses` section of --config); an unreadable
-    house is named with its parser's message.
+    problems found (no floor, no walls, no rooms, loader warnings), and notes (the up axis
+    detected, and why). Houses are read as `sceneforge render` reads them (the `houses`
+    section of --config); an unreadable house is named with its parser's message. A folder
+    whose mesh files look like the objects of one scene gets a hint: how to read it as one.
 
     PATH is one house, a folder of houses in any supported format, a SUNCG root, a
-    3D-FRONT root, or `bundled:toy` for the toy houses shipped with sceneforge. A house that fails to load is reported in red and the others go on;
-    the exit code is 3 when any failed.
+    3D-FRONT root, a folder of one scene's per-object meshes (scene.json), or `bundled:toy`
+    for the toy houses shipped with sceneforge. A house that fails to load is reported in
+    red and the others go on; the exit code is 3 when any failed.
     """
     from rich.console import Console
     from rich.table import Table
 
     from sceneforge.houses import iter_houses
-    from sceneforge.houses.inspect import summarize, write_preview
+    from sceneforge.houses.inspect import SceneFolderHints, summarize, write_preview
 
     check_output(preview_dir, "preview folder", kind="folder")
     out = Console(highlight=False, soft_wrap=True)
     ok = failed = 0
-    for _source, house, error in iter_houses(path, config.houses):
+    hints = SceneFolderHints()
+    for source, house, error in iter_houses(path, config.houses):
+        hints.add(source, house, error)
         if error is not None:
             failed += 1
             out.print(f"[red]failed: {error}[/red]")
@@ -70,6 +74,8 @@ def inspect(path, config, preview_dir, show_cameras):
                 out.print(f"  {label!r}  {n} instances  {t:,} triangles  {100 * share:.1f} %")
         out.print(f"rooms {s.rooms}  levels {s.levels}  bounds "
                   f"[{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}] m")
+        for note in s.notes:
+            out.print(f"note: {note}")
         if s.problems:
             for p in s.problems:
                 out.print(f"[yellow]problem: {p}[/yellow]")
@@ -87,6 +93,8 @@ def inspect(path, config, preview_dir, show_cameras):
                 write_preview(house, tmp)
             out.print(f"preview: {png}")
         out.print()
+    for line in hints.lines():
+        out.print(f"[yellow]hint: {line}[/yellow]")
     out.print(f"{plural(ok, 'house')} read, {failed} failed")
     if failed:
         raise SystemExit(EXIT_FAILURES)

@@ -232,7 +232,7 @@ HOUSE_OPTIONS = (
     ConfigOption("--format", "houses.format", type=click.Choice(FORMATS)),
     ConfigOption("--strict", "houses.strict"),
     ConfigOption("--scale", "houses.scale", type=click.FloatRange(min=0, min_open=True)),
-    ConfigOption("--up-axis", "houses.up_axis", type=click.Choice(["y", "z"])),
+    ConfigOption("--up-axis", "houses.up_axis"),
     ConfigOption("--name-map", "houses.name_map", type=click.Path(exists=True, dir_okay=False)),
     ConfigOption("--future-dir", "houses.future_dir", type=click.Path(exists=True, file_okay=False)),
     ConfigOption("--suncg-textures", "houses.suncg_textures", type=click.Choice(["replace", "multiply"])),

@@ -1,5 +1,5 @@
-"""The JSON Schemas of sceneforge's on-disk contracts (house format, the configs of render,
-train, predict and evaluate, store layout).
+"""The JSON Schemas of sceneforge's on-disk contracts (house format, scene manifest, the
+configs of render, train, predict and evaluate, store layout).
 
 Installed as ``sceneforge.schemas`` so that the schemas travel with the package.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from sceneforge.errors import SceneforgeError
 
-NAMES = ("house", "config", "train", "predict", "evaluate", "store")
+NAMES = ("house", "scene", "config", "train", "predict", "evaluate", "store")
 
 
 @lru_cache(maxsize=None)

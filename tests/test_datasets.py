@@ -5,6 +5,7 @@ generator's hard cases."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -116,8 +117,12 @@ OBJECTS = ("Chair", "Stool", "Gizmo.003", "chair__Gizmo", "DecoPlant", "Leaves",
            "room_skeleton", "Baseboard", "Carpet", "Curtain_Rod", "Cornice", "Blob")
 
 
+#: the named scenes are a row of tilted triangles: no up axis to tell, so it is given
+Y_UP = LoadOptions(up_axis="y")
+
+
 def _named_scene(tmp_path, names=OBJECTS):
-    """An OBJ with one small triangle per name, named so (no tags)."""
+    """An OBJ with one small triangle per name, named so (no tags); read it with :data:`Y_UP`."""
     h = House(id="named", instances=[])
     for k, name in enumerate(names):
         make_instance(h, name=name, category=0, label=name, room_id=None,
@@ -127,27 +132,27 @@ def _named_scene(tmp_path, names=OBJECTS):
 
 def test_user_rules_come_before_the_bundled_ones_and_add_to_them(tmp_path):
     path = _named_scene(tmp_path)
-    default = {i.name: i.category_name for i in load(path).instances}
+    default = {i.name: i.category_name for i in load(path, Y_UP).instances}
     assert default == {"Chair": "chair", "Stool": "chair", "Gizmo.003": "void", "Gizmo": "chair",
                        "room_skeleton/wall": "wall", "Baseboard": "wall", "Carpet": "floor_mat",
                        "Curtain_Rod": "curtain", "Cornice": "wall", "Blob": "void"}
     one_rule = tmp_path / "map.json"
     one_rule.write_text(json.dumps({"patterns": [["stool|gizmo", "otherfurniture"]]}))
-    custom = {i.name: i.category_name for i in load(path, LoadOptions(name_map=str(one_rule))).instances}
+    custom = {i.name: i.category_name for i in load(path, replace(Y_UP, name_map=str(one_rule))).instances}
     # the user's rule wins over the bundled chair rule, the tag over both; the rest is bundled
     assert custom == default | {"Stool": "otherfurniture", "Gizmo.003": "otherfurniture"}
 
 
 def test_drop_removes_instances(tmp_path):
     path = _named_scene(tmp_path)
-    h = load(path)
+    h = load(path, Y_UP)
     names = [i.name for i in h.instances]
     assert not {"DecoPlant", "Leaves", "Branches", "Person.001"} & set(names)
     dropped = [w for w in h.warnings if "dropped" in w]
     assert len(dropped) == 4 and all("name_patterns.json" in w for w in dropped)
     mapping = tmp_path / "drop.json"
     mapping.write_text(json.dumps([["^blob$", "drop"], ["^chair$", "drop"]]))
-    h = load(path, LoadOptions(name_map=str(mapping)))
+    h = load(path, replace(Y_UP, name_map=str(mapping)))
     assert [i.name for i in h.instances] == [n for n in names if n not in ("Blob", "Chair")]
     assert any("'Blob' dropped by drop.json #1 ('^blob$')" in w for w in h.warnings)
 
@@ -312,12 +317,12 @@ def test_two_levels_get_two_levels_of_rooms(tmp_path):
 
 def test_inspect_reports_no_floor_no_rooms_and_void_names(tmp_path):
     path = _named_scene(tmp_path, ("Blob", "Blob.001", "Gizmo", "Chair"))
-    s = summarize(load(path))
+    s = summarize(load(path, Y_UP))
     assert "no floor instance" in s.problems and "no wall instance" in s.problems
     assert any(p.startswith("no rooms") for p in s.problems)
     assert s.void_names == (("Blob", 2, 2, pytest.approx(0.5)), ("Gizmo", 1, 1, pytest.approx(0.25)))
     assert not any(p.startswith("unknown category") for p in s.problems)  # listed once, as void names
-    res = run("houses", "inspect", path)
+    res = run("houses", "inspect", path, "--up-axis", "y")
     assert "names that fell to void:" in res.output and "'Blob'  2 instances  2 triangles  50.0 %" in res.output
     assert "problem: no rooms" in res.output
 

@@ -16,7 +16,7 @@ from sceneforge.testing import suncg as suncg_writer
 
 
 def test_registry_names_and_cli_order():
-    assert FORMATS == ("sceneforge", "gltf", "obj", "ply", "suncg", "front3d")
+    assert FORMATS == ("sceneforge", "gltf", "obj", "ply", "suncg", "front3d", "scene")
     assert all(fmt.name == name for name, fmt in REGISTRY.items())
 
 

@@ -133,7 +133,7 @@ def test_scale_and_z_up(house, tmp_path):
     (LoadOptions(scale=0), "scale must be a finite number > 0, got 0"),
     (LoadOptions(scale=-1.0), "scale must be"),
     (LoadOptions(scale=float("nan")), "scale must be"),
-    (LoadOptions(up_axis="x"), "up_axis must be 'y' or 'z', got 'x'"),
+    (LoadOptions(up_axis="x"), "up_axis must be 'auto', 'y' or 'z', got 'x'"),
 ])
 def test_bad_options_raise(house, tmp_path, options, message):
     path = write_house(house, tmp_path / "scene.obj")
@@ -173,7 +173,7 @@ def test_persons_and_plants_are_dropped(tmp_path):
     path = tmp_path / "people.obj"
     path.write_text(OBJ_UNKNOWN.replace("Blob", "Person").replace("Gizmo.003", "Plant.002")
                     + "o Chair\nv 2 0 0\nv 3 0 0\nv 2 1 0\nf 7 8 9\n")
-    h = load_house(path, LoadOptions(strict=True))  # a plant has no NYU40 class: dropped, not "unknown"
+    h = load_house(path, LoadOptions(strict=True, up_axis="y"))  # a plant has no NYU40 class: dropped, not "unknown"
     assert [i.name for i in h.instances] == ["Chair"]
     assert sum("dropped" in w for w in h.warnings) == 2
 
@@ -284,7 +284,7 @@ def test_binary_ply_with_mixed_polygons(tmp_path):
     body = (verts.tobytes() + struct.pack(">B4ii", 4, 0, 1, 2, 3, 7) + struct.pack(">B3ii", 3, 3, 4, 5, 3))
     path = tmp_path / "mixed.ply"
     path.write_bytes(header.encode() + body)
-    h = load_house(path, LoadOptions())
+    h = load_house(path, LoadOptions(up_axis="y"))
     assert [(i.name, len(i.faces)) for i in h.instances] == [("mixed_3", 1), ("Chair", 2)]
     np.testing.assert_array_equal(h.instances[0].vertices, [[0, 1, 0], [0, 0, 1], [1, 0, 1]])
     path.write_bytes(header.encode() + body[:-6])

@@ -114,7 +114,7 @@ def test_ply_vertex_colours_become_the_instance_colours(tmp_path):
                     "property uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\n"
                     "property list uchar int vertex_indices\nend_header\n"
                     "0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n")
-    (inst,) = load_generic(path, LoadOptions()).instances
+    (inst,) = load_generic(path, LoadOptions(up_axis="y")).instances  # one triangle: no up axis to tell
     np.testing.assert_allclose(inst.colors, [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 1, 1]])
     assert inst.material.base_color == (1.0, 1.0, 1.0, 1.0)
 
@@ -131,7 +131,7 @@ def test_ply_colours_are_srgb_decoded_to_linear(element, tmp_path):
                     + "end_header\n" + "".join(f"{v}{colour if element == 'vertex' else ''}\n"
                                                 for v in ("0 0 0", "1 0 0", "0 1 0"))
                     + "3 0 1 2" + (colour if element == "face" else "") + "\n")
-    (inst,) = load_generic(path, LoadOptions()).instances
+    (inst,) = load_generic(path, LoadOptions(up_axis="y")).instances  # one triangle: no up axis to tell
     expected = [((128 / 255 + 0.055) / 1.055) ** 2.4, ((64 / 255 + 0.055) / 1.055) ** 2.4, 1.0, 128 / 255]
     got = inst.colors[0] if element == "vertex" else inst.material.base_color
     np.testing.assert_allclose(got, expected, rtol=1e-6)

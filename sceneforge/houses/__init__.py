@@ -1,14 +1,15 @@
 """Houses: the model, the input formats (a registry, :mod:`.formats`), the toy-house generator.
 
 Every command that takes ``HOUSES`` goes through :func:`discover`, which turns a path
-(one house file, a house folder, a folder of houses in any format, a SUNCG root or a
-3D-FRONT root) into :class:`HouseSource` entries, and :func:`load`, which reads one.
-Loading is lazy so that one broken house fails alone.
+(one house file, a house folder, a folder of houses in any format, a SUNCG root, a
+3D-FRONT root or a scene folder of per-object meshes) into :class:`HouseSource` entries,
+and :func:`load`, which reads one. Loading is lazy so that one broken house fails alone.
 
 House ids (:func:`house_ids`, the README's "Your own data"):
 
 1. a house file's id is its name without the suffix (``kitchen.glb`` → ``kitchen``);
-   sceneforge and SUNCG houses are named by their folder, 3D-FRONT scenes by their file;
+   sceneforge and SUNCG houses and scene folders are named by their folder, 3D-FRONT scenes
+   by their file;
 2. where a file's name says nothing — it is generic (:data:`GENERIC_STEMS`: ``scene.gltf``,
    ``house.obj``, ``model.ply``, ...) or several houses of the scan share it — the id is the
    name of the folder holding it (``a/scene.gltf`` → ``a``);
@@ -51,8 +52,9 @@ class LoadOptions:
     strict: bool = False
     #: generic meshes: multiply coordinates by this to get metres
     scale: float = 1.0
-    #: generic meshes: the source's up axis ("y" or "z"); z-up is converted to +Y up
-    up_axis: str = "y"
+    #: generic meshes: the source's up axis, converted to +Y up: y, z, or auto (told from the
+    #: geometry and the names of floors; glTF is y unless clearly z; `houses inspect` says why)
+    up_axis: typing.Literal["auto", "y", "z"] = "auto"
     #: generic meshes: JSON name map whose rules are tried before the bundled ones (targets: NYU40 names, drop, shell)
     name_map: str | None = None
     #: 3D-FRONT: folder of 3D-FUTURE models (default: found beside the scene files)
@@ -99,7 +101,8 @@ def discover(path: str | Path, fmt: str | None = None) -> list[HouseSource]:
     if not found:
         raise UnknownFormatError(
             f"{path}: no house found (supported: sceneforge house.json, glTF/GLB, OBJ, PLY, "
-            "SUNCG root or house, 3D-FRONT root or scene JSON)"
+            "SUNCG root or house, 3D-FRONT root or scene JSON, a folder of per-object meshes with a "
+            "scene.json)"
         )
     return house_ids(found, path)
 

@@ -1,4 +1,5 @@
-"""What ``sceneforge houses inspect`` reports: per-house summaries and top-down previews."""
+"""What ``sceneforge houses inspect`` reports: per-house summaries, top-down previews, and
+folders of mesh files that look like one scene's objects."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import numpy as np
 
 from ..conventions import NYU40_IDS, NYU40_NAMES
 from .categories import UNKNOWN
+from .formats.generic import SUFFIXES
+from .formats.scene import MANIFEST
 from .model import House
 
 
@@ -23,6 +26,7 @@ class HouseSummary:
     bounds     : (2, 3) float64 min / max corner, metres
     problems   : what to look at before rendering: loader warnings (but the void names,
                  listed in ``void_names``), missing floors, walls or rooms, homeless instances
+    notes      : what the loader decided (the up axis it detected, and why)
     """
 
     id: str
@@ -36,6 +40,7 @@ class HouseSummary:
     void_names: tuple[tuple[str, int, int, float], ...]
     bounds: np.ndarray
     problems: tuple[str, ...]
+    notes: tuple[str, ...] = ()
 
 
 def summarize(house: House) -> HouseSummary:
@@ -84,7 +89,39 @@ def summarize(house: House) -> HouseSummary:
         void_names=void_names,
         bounds=house.bounds(),
         problems=tuple(problems),
+        notes=tuple(house.notes),
     )
+
+
+class SceneFolderHints:
+    """Folders whose mesh files look like the objects of one scene, exported one file per
+    object: at least two glTF/OBJ/PLY houses in one folder, of which at most one has a floor
+    (the others fail, or load without one, and would fail to render: no floor to stand a
+    camera on). :meth:`add` each house as it is read, :meth:`lines` at the end."""
+
+    def __init__(self):
+        self._floors: dict[Path, list[bool]] = {}
+        self._suffixes: dict[Path, set[str]] = {}
+
+    def add(self, source, house: House | None, error: Exception | None) -> None:
+        """One house of :func:`~sceneforge.houses.iter_houses` (``source``, ``house``, ``error``)."""
+        path = Path(source.path)
+        if source.format not in set(SUFFIXES.values()) or not path.is_file():
+            return
+        has_floor = house is not None and any(i.category == NYU40_IDS["floor"] for i in house.instances)
+        self._floors.setdefault(path.parent, []).append(has_floor)
+        self._suffixes.setdefault(path.parent, set()).add(path.suffix.lower())
+
+    def lines(self) -> list[str]:
+        """One line per such folder: what to write, or which option to pass, to read it as one house."""
+        out = []
+        for folder, floors in self._floors.items():
+            if len(floors) >= 2 and sum(floors) <= 1:
+                files = ", ".join(f'"*{s}"' for s in sorted(self._suffixes[folder]))
+                out.append(f"these {len(floors)} files look like the objects of one scene: write "
+                           f"{folder / MANIFEST} holding {{\"files\": [{files}]}} to read them as one house, "
+                           "or pass --format scene")
+        return out
 
 
 def category_colors() -> np.ndarray:

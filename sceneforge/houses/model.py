@@ -37,11 +37,17 @@ class Material:
                  sampled with the instance's ``uv``; its texels are sRGB-encoded (decoded to
                  linear before shading)
     wrap       : (s, t) wrapping of the texture, each one of :data:`WRAPS`
+    emission   : (3,) float  linear RGB the faces give off themselves (glTF's emissive factor
+                 times its ``KHR_materials_emissive_strength``, OBJ's ``Ke``); (0, 0, 0) for
+                 none. Read so that loaders know light emitters
+                 (:mod:`sceneforge.houses.cleanup`); the renderers light a house their own
+                 way (:mod:`sceneforge.render.lights`) and the native format does not keep it
     """
 
     base_color: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
     texture: "Path | PIL.Image.Image | None" = None
     wrap: tuple[str, str] = ("repeat", "repeat")
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -127,7 +133,9 @@ class House:
     ``warnings`` lists the problems a loader repaired or tolerated (dropped degenerate
     faces, unknown categories mapped to void, ...), for ``sceneforge houses inspect`` and the
     store's provenance. ``losses`` counts, by reason, the pieces a loader left out or flagged
-    (:meth:`count_loss`); each reason also has one line in ``warnings``.
+    (:meth:`count_loss`); each reason also has one line in ``warnings``. ``notes`` says what a
+    loader decided that is no problem but worth knowing: the up axis it detected, and why
+    (:mod:`sceneforge.houses.up_axis`).
     """
 
     id: str
@@ -138,6 +146,7 @@ class House:
     source_path: str | None = None
     warnings: list[str] = field(default_factory=list)
     losses: dict[str, int] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
 
     def count_loss(self, reason: str, n: int = 1) -> None:
         """Count ``n`` more pieces left out (or flagged) for ``reason``; the line

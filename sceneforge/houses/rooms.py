@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import NYU40_IDS
+from ..errors import HouseError, listed
 from .model import House, Level, Room
 
 __all__ = ["derive_rooms", "points_in_triangles"]
@@ -111,7 +112,9 @@ def derive_rooms(house: House, *, level_gap: float = 1.0, same_floor: float = 0.
     """Give a house without rooms rooms and levels from its floors (module doc); returns it.
 
     A house that has rooms, or no floor instance, is returned unchanged (``houses inspect``
-    reports the second).
+    reports the second). A floor region seen edge-on from above (its faces all vertical)
+    covers nothing and makes no room; when no floor region is left, the floors stand on
+    their edges, as in a Z-up scene read +Y up: :class:`HouseError` says so.
     """
     if house.rooms:
         return house
@@ -120,7 +123,13 @@ def derive_rooms(house: House, *, level_gap: float = 1.0, same_floor: float = 0.
     for inst in floors:
         label = _vertex_components(inst.vertices, inst.faces)
         for comp in np.unique(label):
-            regions.append(_Region(inst.id, inst.vertices[inst.faces[label == comp]]))
+            region = _Region(inst.id, inst.vertices[inst.faces[label == comp]])
+            if len(region.xz):
+                regions.append(region)
+    if floors and not regions:
+        raise HouseError(house.id, house.source_path,
+                         f"the floors ({listed([repr(i.name) for i in floors], 3)}) are vertical, with no "
+                         "area seen from above: the up axis is wrong; pass --up-axis y or --up-axis z")
     if not regions:
         return house
     regions = _merge_overlapping(regions, same_floor)

@@ -16,7 +16,8 @@ if TYPE_CHECKING:
     from ..config import DatasetConfig
 
 #: the planning record's entries that the store's ``houses`` attribute keeps
-PROVENANCE = ("id", "format", "path", "views", "instances", "triangles", "rooms", "warnings", "cameras", "inputs")
+PROVENANCE = ("id", "format", "path", "views", "instances", "triangles", "rooms", "warnings", "notes", "cameras",
+              "inputs")
 
 
 def finalize_store(writer: StoreWriter, plan: Plan, config: "DatasetConfig", houses: str,

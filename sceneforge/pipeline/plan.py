@@ -79,8 +79,9 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
     """Load one house and choose its cameras (step 1).
 
     Returns a JSON-ready record: ``id``, ``format``, ``path``, counts, loader warnings,
-    ``cameras`` (how they were chosen), ``camera_id``, ``K`` and ``cam_to_world`` per
-    camera; or ``failure`` (``stage``, ``reason``) when the house cannot be used.
+    loader ``notes`` when there are any (the up axis detected), ``cameras`` (how they were
+    chosen), ``camera_id``, ``K`` and ``cam_to_world`` per camera; or ``failure``
+    (``stage``, ``reason``) when the house cannot be used.
     """
     record = {"id": source.id, "format": source.format, "path": str(source.path)}
     stage = "load"
@@ -88,6 +89,8 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
         house = _load_recording_inputs(source, config, record)
         record.update(instances=len(house.instances), triangles=house.triangle_count, rooms=len(house.rooms),
                       warnings=list(house.warnings))
+        if house.notes:
+            record["notes"] = list(house.notes)
         stage = "cameras"
         if config.cameras is not None:
             cameras, ids, info = _file_cameras(source, config)

@@ -21,7 +21,7 @@ def write_house(house: House, path: str | Path, names: list[str] | None = None) 
     Every format keeps instances (one node / ``o`` object / PLY ``instance`` value each),
     categories (through :func:`tagged_name`, unless ``names`` gives every instance its name
     as written: :mod:`sceneforge.testing.scenes`) and geometry. glTF and OBJ keep base colours,
-    textures and uv; PLY keeps base colours (as face colours) and uv, not textures. Rooms
+    textures, uv and emission; PLY keeps base colours (as face colours) and uv, not textures. Rooms
     are not kept. glTF stores positions as float32, relative to each instance's centre
     (about 6e-8 × the instance's size of error). Returns ``path``.
     """

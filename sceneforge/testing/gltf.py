@@ -66,7 +66,13 @@ def write_gltf(path: Path, house: House, names: list[str]) -> None:
             sampler = samplers.setdefault(tuple(m.wrap), len(samplers))
             pbr["baseColorTexture"] = {"index": gl_textures.setdefault((texture_index[id(m.texture)], sampler),
                                                                        len(gl_textures))}
-        gl_materials.append({"pbrMetallicRoughness": pbr})
+        material = {"pbrMetallicRoughness": pbr}
+        strength = max(1.0, *m.emission)  # a factor is at most 1: the rest goes to the strength
+        if any(m.emission):
+            material["emissiveFactor"] = [float(c) / strength for c in m.emission]
+        if strength > 1:
+            material["extensions"] = {"KHR_materials_emissive_strength": {"emissiveStrength": strength}}
+        gl_materials.append(material)
 
     meshes, nodes = [], []
     for k, (inst, name) in enumerate(zip(house.instances, names, strict=True)):
@@ -103,6 +109,8 @@ def write_gltf(path: Path, house: House, names: list[str]) -> None:
         "bufferViews": views,
         "buffers": [buffer] if blob else [],
     }
+    if any("extensions" in m for m in gl_materials):
+        doc["extensionsUsed"] = ["KHR_materials_emissive_strength"]
     if textures:
         codes = {"repeat": 10497, "clamp": 33071, "mirror": 33648}
         doc |= {"images": images, "textures": [{"source": t, "sampler": s} for t, s in gl_textures],

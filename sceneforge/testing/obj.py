@@ -76,6 +76,8 @@ def write_obj(
         for k, m in enumerate(materials):
             r, g, b, a = (float(c) for c in m.base_color)  # repr: the shortest text that reads back exactly
             lines += [f"newmtl material{k}", f"Kd {r!r} {g!r} {b!r}", f"d {a!r}"]
+            if any(m.emission):
+                lines.append("Ke " + " ".join(repr(float(c)) for c in m.emission))
             if m.texture is not None:
                 clamp = "-clamp on " if tuple(m.wrap) == ("clamp", "clamp") else ""
                 lines.append(f"map_Kd {clamp}{texture_files[id(m.texture)]}")

@@ -4,6 +4,8 @@ give objects in a modelling tool, plants and helper geometry, none of sceneforge
 :func:`write_downloaded` writes a house (a toy house, say, whose true classes are known) as
 glTF/OBJ/PLY so that tests can check what the loader makes of it: the shell split into
 wall, floor and ceiling, the bundled name map's classes, plants dropped, unknown names void.
+:func:`write_object_files` writes a house one file per object, as tools export a scene, and
+:func:`rotated_z_up` turns a house the way a Z-up tool has it.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import NYU40_IDS, NYU40_NAMES
+from ..houses.formats.generic import Z_UP_TO_Y_UP
 from ..houses.model import House, Instance, Material
 from .generic import write_house
 
@@ -99,3 +102,47 @@ def _box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     b = trimesh.creation.box(bounds=np.stack([lo, hi]))
     return np.asarray(b.vertices), np.asarray(b.faces)
+
+
+#: the name an instance of a class gets from :func:`object_names` (other classes: its label
+#: in CamelCase, ``coffee_table`` → ``CoffeeTable``)
+OBJECT_NAMES = {"wall": "Walls", "ceiling": "Ceiling", "floor": "Floor", "lamp": "CeilingLamp"}
+
+
+def object_names(house: House) -> list[str]:
+    """A name per instance of ``house`` as a modelling tool exports them, copies numbered the
+    Blender way: ``Floor``, ``Walls``, ``Chair``, ``Chair.001``, ``CeilingLamp`` (:data:`OBJECT_NAMES`)."""
+    counts: dict[str, int] = {}
+    names = []
+    for inst in house.instances:
+        base = OBJECT_NAMES.get(NYU40_NAMES[inst.category]) or "".join(
+            w.title() for w in inst.label.split("_"))
+        counts[base] = counts.get(base, 0) + 1
+        names.append(base if counts[base] == 1 else f"{base}.{counts[base] - 1:03d}")
+    return names
+
+
+def write_object_files(house: House, folder: str | Path, *, suffix: str = ".obj",
+                       names: list[str] | None = None, object_name: str = "default") -> list[Path]:
+    """Write every instance of ``house`` to a file of its own, ``folder/<name><suffix>`` (names:
+    :func:`object_names` unless given), the mesh in it named ``object_name`` (a name that says
+    nothing, so that the file's name is the object's). Returns the files, in instance order."""
+    from dataclasses import replace
+
+    folder = Path(folder)
+    names = object_names(house) if names is None else list(names)
+    files = []
+    for inst, name in zip(house.instances, names, strict=True):
+        one = House(id=house.id, instances=[replace(inst, id=0)])
+        files.append(write_house(one, folder / f"{name}{suffix}", names=[object_name]))
+    return files
+
+
+def rotated_z_up(house: House) -> House:
+    """``house`` (+Y up) as a Z-up tool has it: every vertex ``(x, y, z)`` → ``(x, -z, y)``,
+    which :data:`~sceneforge.houses.formats.generic.Z_UP_TO_Y_UP` takes back exactly."""
+    from dataclasses import replace
+
+    back = Z_UP_TO_Y_UP  # (x, -z, y) @ back.T = (x, y, z): the inverse is the transpose
+    return House(id=house.id, instances=[replace(i, vertices=i.vertices @ back) for i in house.instances],
+                 rooms=list(house.rooms), levels=list(house.levels))

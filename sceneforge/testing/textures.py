@@ -10,7 +10,7 @@ from ..houses.model import Instance, Material
 
 
 def distinct_materials(materials: list[Material | None]) -> tuple[list[Material], list[int], list]:
-    """Equal materials (same colour, texture object and wrapping) written once.
+    """Equal materials (same colour, texture object, wrapping and emission) written once.
 
     Returns the distinct materials, the index of each input among them (-1 for None) and the
     distinct textures in order of first use.
@@ -25,9 +25,10 @@ def distinct_materials(materials: list[Material | None]) -> tuple[list[Material]
         if m.texture is not None:
             textures.setdefault(id(m.texture), m.texture)
         key = (tuple(float(c) for c in m.base_color), id(m.texture) if m.texture is not None else None,
-               tuple(m.wrap))
+               tuple(m.wrap), tuple(float(c) for c in m.emission))
         index.append(keys.setdefault(key, len(keys)))
-    distinct = [Material(base_color=color, texture=textures.get(tex_id), wrap=wrap) for color, tex_id, wrap in keys]
+    distinct = [Material(base_color=color, texture=textures.get(tex_id), wrap=wrap, emission=emission)
+                for color, tex_id, wrap, emission in keys]
     return distinct, index, list(textures.values())
 
 

@@ -13,6 +13,8 @@ name           module                                what is recognised
 ``ply``        :mod:`.generic` (parser :mod:`.ply`)  ``.ply`` file
 ``suncg``      :mod:`.suncg`                         SUNCG root, a house folder in one, its ``house.json``
 ``front3d``    :mod:`.front3d`                       folder holding ``3D-FRONT/``, scene JSON
+``scene``      :mod:`.scene` (files read by          folder of per-object meshes: with a
+               :mod:`.generic`)                      ``scene.json``, or named as one room's parts
 ============== ===================================== =========================================
 
 :func:`find` searches a path with them; :func:`sceneforge.houses.discover` and
@@ -26,19 +28,22 @@ import json
 from pathlib import Path
 
 from ...errors import UnknownFormatError
-from . import front3d, generic, native, suncg
+from . import front3d, generic, native, scene, suncg
 from .base import Format, HouseSource, forget_json_document
 
 __all__ = ["FOLDER_ORDER", "REGISTRY", "UNREADABLE", "Format", "HouseSource", "detect", "find"]
 
 #: Every format by name, in the order ``--format`` lists them and files are recognised: a
-#: sceneforge ``house.json`` also has SUNCG's keys, so sceneforge is asked first.
+#: sceneforge ``house.json`` also has SUNCG's keys, so sceneforge is asked first; a
+#: ``scene.json`` holding a 3D-FRONT scene is 3D-FRONT's.
 REGISTRY: dict[str, Format] = {
-    f.name: f for f in (native.FORMAT, generic.GLTF, generic.OBJ, generic.PLY, suncg.FORMAT, front3d.FORMAT)
+    f.name: f for f in (native.FORMAT, generic.GLTF, generic.OBJ, generic.PLY, suncg.FORMAT, front3d.FORMAT,
+                        scene.FORMAT)
 }
 #: The formats a folder can be, in the order asked: SUNCG and 3D-FRONT by their folder layout
-#: (whatever else the folder holds), then a sceneforge house folder by its ``house.json``.
-FOLDER_ORDER = ("suncg", "front3d", "sceneforge")
+#: (whatever else the folder holds), then a sceneforge house folder by its ``house.json``,
+#: then a folder of per-object meshes (a scene).
+FOLDER_ORDER = ("suncg", "front3d", "sceneforge", "scene")
 
 
 def detect(path: Path) -> Format | None:
@@ -60,8 +65,9 @@ def find(path: Path, only: Format | None = None) -> list[HouseSource]:
     """Every house at ``path``, in a stable (sorted) order; with ``only``, of that format alone.
 
     A file is one house (of ``only`` whatever it looks like, when given). A folder that a
-    format recognises holds that format's houses; any other folder is searched, sorted,
-    hidden names skipped, for recognised files and folders. A ``house.json`` no format
+    format recognises (or, with ``only``, takes as a fallback: ``--format scene``, any folder
+    of meshes) holds that format's houses; any other folder is searched, sorted, hidden
+    names skipped, for recognised files and folders. A ``house.json`` no format
     recognises, and a JSON file given itself that is not JSON, are found as houses with a
     :attr:`HouseSource.problem` (the parser's message): they fail alone. Raises
     :class:`UnknownFormatError` for any other file in no format.
@@ -74,7 +80,8 @@ def find(path: Path, only: Format | None = None) -> list[HouseSource]:
         if problem is None:
             raise UnknownFormatError(f"{path}: not a house in any supported format")
         return [HouseSource(path.stem, UNREADABLE, path, problem)]
-    fmt = detect(path) if only is None else (only if only.detect(path) else None)
+    fmt = detect(path) if only is None else (
+        only if only.detect(path) or only.fallback is not None and only.fallback(path) else None)
     if fmt is not None:
         return fmt.sources(path)
     found: list[HouseSource] = []

@@ -48,8 +48,8 @@ class Format:
     #: ``list(path)``: the houses at a path this format detected or was asked for (all the
     #: houses of a root); None: the path is one house file, its id the file's stem
     list: Callable[[Path], list[HouseSource]] | None = None
-    #: ``fallback(path)``: True for a file no format recognises that this one takes when it
-    #: is asked for by name; None: such files are skipped
+    #: ``fallback(path)``: True for a file or folder no format recognises that this one takes
+    #: when it is asked for by name; None: such files are skipped
     fallback: Callable[[Path], bool] | None = None
 
     def sources(self, path: Path) -> list[HouseSource]:

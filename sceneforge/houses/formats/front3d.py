@@ -699,5 +699,5 @@ def _load(source: HouseSource, options: LoadOptions) -> House:
 FORMAT = Format(
     "front3d", detect=detect, list=list_houses, load=_load,
     # scene files vary: inside a root, or when 3D-FRONT is asked for, any other JSON is one
-    fallback=lambda path: path.suffix.lower() == ".json",
+    fallback=lambda path: path.suffix.lower() == ".json" and not path.is_dir(),
 )

@@ -203,10 +203,13 @@ class _Gltf:
                            "baseColorTexture": sg.get("diffuseTexture")}
                 color = pbr.get("baseColorFactor") or (1.0, 1.0, 1.0, 1.0)
                 tex = pbr.get("baseColorTexture")
+                strength = spec.get("extensions", {}).get("KHR_materials_emissive_strength", {})
                 self.materials[index] = Material(
                     base_color=tuple(float(c) for c in color),
                     texture=self.texture(tex["index"]) if tex else None,
                     wrap=self.wrap(tex["index"]) if tex else ("repeat", "repeat"),
+                    emission=tuple(float(c) * float(strength.get("emissiveStrength", 1.0))
+                                   for c in spec.get("emissiveFactor") or (0.0, 0.0, 0.0)),
                 )
         return self.materials[index]
 

@@ -103,7 +103,7 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
     """Materials of an MTL file by name (``{}`` with a warning when it cannot be read).
 
     ``Kd`` and ``d`` (or ``1 - Tr``) give the base colour, clipped to [0, 1] (default
-    0.8 grey, opaque); ``map_Kd`` the texture.
+    0.8 grey, opaque); ``map_Kd`` the texture; ``Ke`` the emission (default none).
     """
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
@@ -119,12 +119,16 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
         key, rest = parts[0], parts[1].strip() if len(parts) > 1 else ""
         try:
             if key == "newmtl":
-                current = found.setdefault(rest, {"kd": _DEFAULT_KD, "alpha": 1.0, "map": None, "clamp": False})
+                current = found.setdefault(rest, {"kd": _DEFAULT_KD, "alpha": 1.0, "map": None,
+                                                  "clamp": False, "ke": (0.0, 0.0, 0.0)})
             elif current is None:
                 continue
             elif key == "Kd":
                 kd = tuple(float(c) for c in rest.split()[:3])
                 current["kd"] = kd if len(kd) == 3 else _DEFAULT_KD
+            elif key == "Ke":
+                ke = tuple(max(float(c), 0.0) for c in rest.split()[:3])
+                current["ke"] = ke if len(ke) == 3 else current["ke"]
             elif key == "d":
                 current["alpha"] = float(rest.split()[0])
             elif key == "Tr":
@@ -142,6 +146,7 @@ def read_mtl(path: Path, warn: Warn = ignore) -> dict[str, Material]:
             base_color=tuple(float(c) for c in np.clip([*m["kd"], m["alpha"]], 0.0, 1.0)),
             texture=find_image(m["map"], warn, warn_missing=True) if m["map"] else None,
             wrap=("clamp", "clamp") if m["clamp"] else ("repeat", "repeat"),
+            emission=m["ke"],
         )
         for name, m in found.items()
     }

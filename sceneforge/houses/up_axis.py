@@ -1,0 +1,207 @@
+"""The up axis of a generic scene (glTF, OBJ, PLY, a scene folder), told from its geometry.
+
+Scenes come +Y up (glTF by its spec, Blender's OBJ export) or +Z up (Blender, 3ds Max and
+scanners' own axes, many PLY files); sceneforge works +Y up. :func:`detect_up_axis` decides
+between +Y and +Z from three kinds of evidence, each voting for one axis or for neither:
+
+- **names**: the meshes a name map classes ``floor`` or ``ceiling``. Their faces lie flat to
+  the up axis: a vote when at least ``named_share`` of their area faces one axis (its normal
+  within ``acos(flat_cos)`` of it) and ``named_ratio`` times as much as the other;
+- **gravity**: objects stand on the floor. Along a candidate +A, the lowest points of the
+  meshes spanning at most half the scene along A are grouped by height (points closer than
+  ``cluster`` × the scene's size are one height); the largest group in the lowest
+  ``bottom`` of the scene counts the objects standing at the bottom. Along a horizontal
+  axis only the objects pushed against one wall line up so. A vote when at least
+  ``min_objects`` stand at the bottom and ``gravity_ratio`` times as many as along the
+  other axis;
+- **area**: floors, ceilings, table tops, seats and beds face the up axis, the walls are
+  shared out between the two horizontal axes. A vote when the share of the area facing
+  one axis is ``area_ratio`` times the other's and the scene is not flat (its extent along
+  each axis at least ``flat`` × its size: a plane could be a floor or a wall).
+
+The axis some evidence votes for while none votes for the other is chosen; no vote, or
+votes both ways, is undecided (:attr:`UpAxis.axis` None). A glTF scene (``prefer_y``) is +Y
+up by its spec: it is read +Z up only when the names or gravity vote for Z and nothing for
+Y, else +Y. The decision depends on the geometry and names only (not on the order of
+equal-height objects, not on the units), so a scene always gets the same axis.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Part", "UpAxis", "detect_up_axis"]
+
+_AXES = {"y": 1, "z": 2}
+
+
+@dataclass(frozen=True)
+class Part:
+    """One mesh as the source file has it, for :func:`detect_up_axis`.
+
+    vertices : (n, 3) float   source axes and units
+    faces    : (m, 3) int     indices into ``vertices``
+    kind     : ``"floor"`` or ``"ceiling"`` when a name map classes the mesh so, else None
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    kind: str | None = None
+
+
+@dataclass(frozen=True)
+class UpAxis:
+    """What :func:`detect_up_axis` decided: ``axis`` ``"y"``, ``"z"`` or None (it cannot
+    tell), and ``reason``, the evidence in words."""
+
+    axis: str | None
+    reason: str
+
+
+@dataclass(frozen=True)
+class _Evidence:
+    """The three kinds of evidence, per axis ``"y"`` / ``"z"`` (module doc)."""
+
+    named: dict[str, float] | None  # share of the named floors' and ceilings' area facing each axis
+    named_count: int
+    standing: dict[str, int]  # objects standing at the bottom along +axis
+    area: dict[str, float]  # share of all the area facing each axis
+    flat: bool
+    objects: int
+
+
+def detect_up_axis(
+    parts: Sequence[Part],
+    *,
+    prefer_y: bool = False,
+    flat_cos: float = float(np.cos(np.radians(15))),
+    named_share: float = 0.5,
+    named_ratio: float = 3.0,
+    cluster: float = 0.002,
+    bottom: float = 0.25,
+    min_objects: int = 3,
+    gravity_ratio: float = 2.0,
+    area_ratio: float = 1.5,
+    flat: float = 0.01,
+) -> UpAxis:
+    """The up axis of a scene made of ``parts`` (module doc for the rule and the parameters).
+
+    prefer_y : the source is glTF (+Y up by its spec): +Z only on clear evidence
+    """
+    ev = _evidence([p for p in parts if len(p.faces)], flat_cos, cluster, bottom, flat)
+    votes: dict[str, str] = {}  # kind of evidence → the axis it votes for
+    if ev.named is not None:
+        axis, other = _ranked(ev.named)
+        if ev.named[axis] >= named_share and ev.named[axis] >= named_ratio * ev.named[other]:
+            votes["names"] = axis
+    axis, other = _ranked(ev.standing)
+    if ev.standing[axis] >= min_objects and ev.standing[axis] >= gravity_ratio * ev.standing[other]:
+        votes["gravity"] = axis
+    axis, other = _ranked(ev.area)
+    if not ev.flat and ev.area[axis] > 0 and ev.area[axis] >= area_ratio * ev.area[other]:
+        votes["area"] = axis
+    said = {
+        "names": _named_words(ev, votes.get("names") or _ranked(ev.named or {"y": 0, "z": 0})[0]),
+        "gravity": _standing_words(ev, votes.get("gravity") or _ranked(ev.standing)[0]),
+        "area": _area_words(ev, votes.get("area") or _ranked(ev.area)[0]),
+    }
+    chosen = set(votes.values())
+    if prefer_y and chosen != {"y"} and not (chosen == {"z"} and ("names" in votes or "gravity" in votes)):
+        return UpAxis("y", "glTF's convention, the evidence being unclear: " + "; ".join(
+            said[k] for k in ("names", "gravity", "area")))
+    if len(chosen) == 1:
+        return UpAxis(chosen.pop(), "detected: " + "; ".join(said[k] for k in votes))
+    if chosen:
+        both = "; ".join(f"{said[k]}: {a.upper()}" for k, a in votes.items())
+        return UpAxis(None, f"the evidence disagrees: {both}")
+    return UpAxis(None, "; ".join(said[k] for k in ("names", "gravity", "area")))
+
+
+def _ranked(values: dict) -> tuple[str, str]:
+    """(the axis with the larger value, the other); Y on a tie, so the order is fixed."""
+    return ("z", "y") if values["z"] > values["y"] else ("y", "z")
+
+
+def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float, flat: float) -> _Evidence:
+    if not parts:
+        zero = {"y": 0.0, "z": 0.0}
+        return _Evidence(None, 0, {"y": 0, "z": 0}, zero, True, 0)
+    lows, highs, facing, areas, named, named_count = [], [], [], [], np.zeros(3), 0
+    for p in parts:
+        v = np.asarray(p.vertices, dtype=np.float64).reshape(-1, 3)
+        tri = v[np.asarray(p.faces, dtype=np.int64).reshape(-1, 3)]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (m, 3), |n| = 2 × area
+        double_area = np.linalg.norm(normal, axis=1)
+        ok = double_area > 0
+        along = np.abs(normal[ok]) >= flat_cos * double_area[ok, None]  # (m', 3) faces flat to each axis
+        per_axis = (double_area[ok, None] * along).sum(0) / 2  # (3,) area facing each axis
+        facing.append(per_axis)
+        areas.append(double_area[ok].sum() / 2)
+        if p.kind in ("floor", "ceiling"):
+            named += per_axis
+            named_count += 1
+        used = v[np.unique(p.faces)]
+        lows.append(used.min(0))
+        highs.append(used.max(0))
+    lows, highs = np.array(lows), np.array(highs)  # (p, 3)
+    lo, hi = lows.min(0), highs.max(0)
+    extent = hi - lo
+    size = float(extent.max())
+    total = float(sum(areas)) or 1.0
+    facing_total = np.sum(facing, axis=0) / total
+    named_area = sum(a for a, p in zip(areas, parts, strict=True) if p.kind in ("floor", "ceiling"))
+    standing = {}
+    for name, k in _AXES.items():
+        small = highs[:, k] - lows[:, k] <= 0.5 * extent[k]
+        h = np.sort(lows[small, k])
+        if not len(h) or extent[k] <= 0:
+            standing[name] = 0
+            continue
+        # objects whose lowest points lie within `cluster` above each one's, the first in the bottom
+        count = np.searchsorted(h, h + cluster * size, side="right") - np.arange(len(h))
+        at_bottom = h <= lo[k] + bottom * extent[k]
+        standing[name] = int(count[at_bottom].max()) if at_bottom.any() else 0
+    return _Evidence(
+        named={a: float(named[k] / named_area) for a, k in _AXES.items()} if named_area > 0 else None,
+        named_count=named_count,
+        standing=standing,
+        area={a: float(facing_total[k]) for a, k in _AXES.items()},
+        flat=bool(min(extent[1], extent[2]) < flat * size) if size > 0 else True,
+        objects=len(parts),
+    )
+
+
+def _other(axis: str) -> str:
+    return "z" if axis == "y" else "y"
+
+
+def _named_words(ev: _Evidence, axis: str) -> str:
+    if ev.named is None:
+        return "no mesh named as a floor or ceiling"
+    what = "1 mesh named as a floor or ceiling faces" if ev.named_count == 1 else \
+        f"{ev.named_count} meshes named as floors or ceilings face"
+    whose = "its" if ev.named_count == 1 else "their"
+    return (f"{what} ±{axis.upper()} with {_pct(ev.named[axis])} of {whose} area, "
+            f"±{_other(axis).upper()} with {_pct(ev.named[_other(axis)])}")
+
+
+def _standing_words(ev: _Evidence, axis: str) -> str:
+    if ev.objects < 2:
+        return "one mesh, no objects standing on a floor"
+    n, other = ev.standing[axis], _other(axis)
+    objects = "1 object stands" if n == 1 else f"{n} objects stand"
+    return f"{objects} at the bottom along +{axis.upper()}, {ev.standing[other]} along +{other.upper()}"
+
+
+def _area_words(ev: _Evidence, axis: str) -> str:
+    other = _other(axis)
+    words = (f"{_pct(ev.area[axis])} of the area faces ±{axis.upper()}, "
+             f"{_pct(ev.area[other])} ±{other.upper()}")
+    return words + " and the scene is flat" if ev.flat else words
+
+
+def _pct(share: float) -> str:
+    return f"{100 * share:.0f} %"
