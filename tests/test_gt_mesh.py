@@ -21,7 +21,8 @@ from sceneforge.pipeline.gt_mesh import GroundTruthMeshes, cache_folder, ground_
 from sceneforge.store import MESH_KINDS, array_digests, check_store, open_store
 from sceneforge.store.reader import arrays_of
 
-CLI = LazyGroup(name="sceneforge", lazy={"render": "render:render", "evaluate": "evaluate:evaluate"})
+CLI = LazyGroup(name="sceneforge", lazy={"render": "render:render", "evaluate": "evaluate:evaluate",
+                                         "overhead-camera": "overhead_camera:overhead_camera"})
 #: the bundled toy houses, small and fast: one view each, no RGB
 RENDER = ["--views-per-house", "1", "--resolution", "64x48", "--overhead-resolution", "32", "--no-rgb"]
 
@@ -173,11 +174,14 @@ def test_houses_given_by_a_relative_path_are_found_from_another_folder(houses, t
     monkeypatch.chdir(tmp_path)
     assert run("render", "mine", "one.zarr", *RENDER, "--gt-mesh", "all").exit_code == 0
     store = open_store("one.zarr")
-    assert store.attrs["houses"][0]["path"] == "mine/toy_0_002"  # as HOUSES was given
+    assert store.attrs["houses"][0]["path"] == str(tmp_path / "mine" / "toy_0_002")  # recorded absolute
+    assert store.attrs["houses_source"] == str((tmp_path / "mine").resolve())
     stored = store.mesh(0)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
+    explained = run("overhead-camera", "--store", "../one.zarr", "--view", 0)  # its house found the same way
+    assert explained.exit_code == 0, explained.output
     lean = open_store("../one.zarr")
     lean.has_mesh = False  # make them, as for a store that keeps none
     made = GroundTruthMeshes(lean).mesh(0)
@@ -212,3 +216,21 @@ def test_a_relative_name_map_is_recorded_absolute_and_read_from_another_folder(t
     lean = open_store("../one.zarr")
     made = GroundTruthMeshes(lean).mesh(0)  # the house loaded again with the recorded map
     assert len(made["envelope"][1])
+
+
+def test_a_store_is_run_again_from_any_folder_and_an_older_relative_one_from_its_own(houses, tmp_path,
+                                                                                      monkeypatch):
+    shutil.copytree(houses / "toy_0_002", tmp_path / "mine" / "toy_0_002")
+    monkeypatch.chdir(tmp_path)
+    assert run("render", "mine", "one.zarr", *RENDER).exit_code == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    again = run("render", "../mine", "../one.zarr", *RENDER, "--update")
+    assert again.exit_code == 0 and "already complete" in again.output, again.output
+    # a store written before paths were recorded absolute: as given, relative to where it ran
+    group = zarr.open_group(str(tmp_path / "one.zarr"), mode="r+")
+    group.attrs["houses_source"] = "mine"
+    monkeypatch.chdir(tmp_path)
+    again = run("render", "mine", "one.zarr", *RENDER)
+    assert again.exit_code == 0 and "already complete" in again.output, again.output

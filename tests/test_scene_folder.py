@@ -6,6 +6,7 @@ file is fingerprinted and the ground-truth meshes are made again from the folder
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import jsonschema
 import numpy as np
@@ -213,3 +214,21 @@ def test_generic_names():
     generic = ("default", "Default_Object", "Mesh.001", "Object001", "node12", "")
     assert all(GENERIC_NAME.match(n) for n in generic)
     assert not any(GENERIC_NAME.match(n) for n in ("Chair", "Floor.001", "Meshchair", "Objects"))
+
+
+def test_the_hint_stands_when_a_few_files_have_a_floor_of_their_own(toy, tmp_path):
+    # two floors of a two-room export (or wall boxes split into floors) among many objects
+    # without one: still the objects of one scene; whole houses (each with its floor) get none
+    objects = House("o", [i for i in toy.instances if i.category not in (1, 22)])  # no walls, no ceilings
+    floors = sum(i.category == 2 for i in objects.instances)
+    assert floors >= 2
+    folder = tmp_path / "export"
+    for inst, name in zip(objects.instances, object_names(objects)):  # each mesh named as its file
+        write_house(House("o", [replace(inst, id=0)]), folder / f"{name}.obj", names=[name])
+    res = run("houses", "inspect", folder, "--up-axis", "y")  # each floor file then loads, with its floor
+    assert sum(line.startswith("Floor") for line in res.output.splitlines()) == floors
+    assert f"hint: these {len(objects.instances)} files look like" in res.output
+    houses = tmp_path / "houses"
+    for name in ("kitchen", "bedroom"):
+        write_house(toy, houses / f"{name}.obj")
+    assert "hint:" not in run("houses", "inspect", houses).output

@@ -95,9 +95,10 @@ def summarize(house: House) -> HouseSummary:
 
 class SceneFolderHints:
     """Folders whose mesh files look like the objects of one scene, exported one file per
-    object: at least two glTF/OBJ/PLY houses in one folder, of which at most one has a floor
-    (the others fail, or load without one, and would fail to render: no floor to stand a
-    camera on). :meth:`add` each house as it is read, :meth:`lines` at the end."""
+    object: at least two glTF/OBJ/PLY houses in one folder, fewer than half of which have a
+    floor (the others fail, or load without one, and would fail to render: no floor to stand
+    a camera on; a wall mesh that is a closed box may give one or two of them a floor of
+    their own, :mod:`.cleanup`). :meth:`add` each house as it is read, :meth:`lines` at the end."""
 
     def __init__(self):
         self._floors: dict[Path, list[bool]] = {}
@@ -116,7 +117,7 @@ class SceneFolderHints:
         """One line per such folder: what to write, or which option to pass, to read it as one house."""
         out = []
         for folder, floors in self._floors.items():
-            if len(floors) >= 2 and sum(floors) <= 1:
+            if len(floors) >= 2 and 2 * sum(floors) < len(floors):
                 files = ", ".join(f'"*{s}"' for s in sorted(self._suffixes[folder]))
                 out.append(f"these {len(floors)} files look like the objects of one scene: write "
                            f"{folder / MANIFEST} holding {{\"files\": [{files}]}} to read them as one house, "

@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Callable, Protocol
 
 from ..store import StoreWriter, location_errors
 from ..store.guard import check_apart, check_store_output
+from ..store.location import resolve
 from .assign import Plan, ViewPlan
 from .executors import default_workers, executor
 from .finalize import finalize_store
@@ -143,6 +144,8 @@ def render_dataset(
     from ..houses import discover
 
     t_start = time.perf_counter()
+    # recorded absolute, so that the store names its houses from any folder (messages keep HOUSES as given)
+    source = str(houses) if str(houses).startswith("bundled:") else resolve(str(houses))
     check_apart(out, "store", [("houses", houses)])
     check_store_output(out, "dataset", overwrite=overwrite, storage_options=storage_options)
     writer = StoreWriter(out, storage_options)
@@ -157,7 +160,7 @@ def render_dataset(
         workers = default_workers(max(len(sources), shards))
     try:
         with writer, location_errors(writer.url):  # S3 gone mid-run: one line, as at the start
-            prep = prepare(writer, identity(config, str(houses)), [s.id for s in sources], overwrite=overwrite,
+            prep = prepare(writer, identity(config, source), [s.id for s in sources], overwrite=overwrite,
                            update=update, retry_failed=retry_failed)
             if prep.state == "complete":
                 writer.rm(STAGING)
@@ -170,12 +173,12 @@ def render_dataset(
                 created = writer.get_json(CREATED_KEY)
                 if created != {"views": len(plan.views)}:
                     if created is None:
-                        writer.create(config, str(houses), len(plan.views))
+                        writer.create(config, source, len(plan.views))
                     else:  # an update: the shards that keep their views stay
                         writer.resize(config, len(plan.views))
                     writer.put_json(CREATED_KEY, {"views": len(plan.views)})
                 rendered = _render_shards(writer, plan, sources, config, run, progress)
-            provenance, failures = finalize_store(writer, plan, config, str(houses), rendered.markers)
+            provenance, failures = finalize_store(writer, plan, config, source, rendered.markers)
     except OSError as e:
         raise write_error(writer, e) from None
     return _summary(writer, provenance, failures, len(plan.views), config, t_start, rendered, prep)

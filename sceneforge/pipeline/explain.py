@@ -21,6 +21,7 @@ from ..layers import frontal_layers
 from ..overhead import FrontalPoints, OverheadCamera, OverheadConfig, overhead_camera_and_points
 from ..raytrace import HouseTracer
 from ..store import open_store
+from .inputs import house_path
 from .plan import house_rng
 
 if TYPE_CHECKING:
@@ -111,7 +112,7 @@ def explain_stored_view(store: str, index: int) -> ViewExplanation:
         raise SceneforgeError(f"view {index} of {store} failed when it was rendered (see its failure log): "
                               "it has no overhead camera")
     record = next(h for h in s.attrs["houses"] if h["id"] == str(view["house_id"]))
-    house = load(HouseSource(record["id"], record["format"], Path(record["path"])), config.houses)
+    house = load(HouseSource(record["id"], record["format"], house_path(record)), config.houses)
     camera = Camera(view["K"], view["cam_to_world"], config.width, config.height)
     layers = frontal_layers(house, camera, HouseTracer(house))
     overhead, points = overhead_camera_and_points(house, camera, layers, config.view.overhead)

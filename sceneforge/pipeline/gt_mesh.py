@@ -10,7 +10,7 @@ instance layers, the envelope is its D5 traced afresh at the store's mesh rules,
 vertices are rounded to float32 as the store rounds them.
 
 A house is read from its recorded path (a relative one also from another folder, through
-its fingerprinted files' absolute paths: :func:`house_path`) and used only if every input
+its fingerprinted files' absolute paths: :func:`~.inputs.house_path`) and used only if every input
 file the run fingerprinted still hashes as recorded (:mod:`.inputs`); otherwise the meshes
 would be those of another house, and a score of them wrong, so that is a
 :class:`SceneforgeError` naming the house and its first changed file.
@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import SceneforgeError
 from ..store import MESH_KINDS
-from .inputs import file_digest
+from .inputs import file_digest, house_path
 
 if TYPE_CHECKING:
     from ..houses import House
@@ -204,22 +204,6 @@ class GroundTruthMeshes:
             if tmp is not None:
                 with contextlib.suppress(OSError):
                     os.unlink(tmp)
-
-
-def house_path(record: dict) -> Path:
-    """Where the house of a store's provenance ``record`` is: its recorded ``path``, which is
-    relative to the folder render ran in when HOUSES was given so; from another folder, the
-    same path inside the absolute paths its fingerprinted files were read from."""
-    path = Path(record["path"])
-    if path.is_absolute() or path.exists():
-        return path
-    tail = "/" + path.as_posix().strip("/")
-    for read in record.get("inputs") or {}:
-        read = Path(read).as_posix()
-        at = (read + "/").find(tail + "/")
-        if at >= 0:
-            return Path(read[: at + len(tail)])
-    return path
 
 
 def ground_truth_meshes(path: str, storage_options: dict | None = None) -> GroundTruthMeshes:

@@ -158,3 +158,19 @@ def changes(before: list[dict], now: list[str]) -> InputChanges:
     found = set(now)
     return InputChanges(tuple(changed), tuple(h for h in now if h not in known),
                         tuple(h for h in known if h not in found), tuple(fixed))
+
+
+def house_path(record: dict) -> Path:
+    """Where the house of a store's provenance ``record`` is: its recorded ``path``, which is
+    relative to the folder render ran in when HOUSES was given so; from another folder, the
+    same path inside the absolute paths its fingerprinted files were read from."""
+    path = Path(record["path"])
+    if path.is_absolute() or path.exists():
+        return path
+    tail = "/" + path.as_posix().strip("/")
+    for read in record.get("inputs") or {}:
+        read = Path(read).as_posix()
+        at = (read + "/").find(tail + "/")
+        if at >= 0:
+            return Path(read[: at + len(tail)])
+    return path

@@ -4,6 +4,7 @@ records an interrupted run staged."""
 from __future__ import annotations
 
 import zlib
+from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -49,8 +50,6 @@ def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", recor
 def check_camera_folder(cameras: str, house_ids: list[str]) -> None:
     """Refuse a ``--cameras`` folder that holds a camera file for none of the houses (a
     wrong folder would otherwise fail every house and leave a store of no views)."""
-    from pathlib import Path
-
     folder = Path(cameras)
     if not folder.is_dir():
         raise SceneforgeError(f"--cameras {cameras}: no such folder")
@@ -62,8 +61,6 @@ def check_camera_folder(cameras: str, house_ids: list[str]) -> None:
 
 def _file_cameras(source: "HouseSource", config: "DatasetConfig"):
     """Cameras of ``<cameras>/<house id>/room_camera.txt`` and their 0-based line numbers."""
-    from pathlib import Path
-
     from ..cameras import read_pbrs_cameras
 
     path = Path(config.cameras) / source.id / "room_camera.txt"
@@ -83,7 +80,7 @@ def plan_house(source: "HouseSource", config: "DatasetConfig") -> dict:
     chosen), ``camera_id``, ``K`` and ``cam_to_world`` per camera; or ``failure``
     (``stage``, ``reason``) when the house cannot be used.
     """
-    record = {"id": source.id, "format": source.format, "path": str(source.path)}
+    record = {"id": source.id, "format": source.format, "path": str(Path(source.path).absolute())}
     stage = "load"
     try:
         house = _load_recording_inputs(source, config, record)

@@ -60,6 +60,23 @@ def identity(config: "DatasetConfig", houses: str) -> dict:
     return {"schema_version": SCHEMA_VERSION, "houses_source": houses, "config": config.to_dict()}
 
 
+def comparable(run_identity: dict) -> dict:
+    """``run_identity`` with the paths in it absolute (the houses source, the config's files):
+    a run records them so, but a store written before recorded them as given, relative to
+    the folder it ran in; resolved from the folder this run runs in, such a store still
+    resumes and updates where it used to."""
+    from ..config import absolute_paths
+    from ..store.location import resolve
+
+    out = dict(run_identity)
+    source = out.get("houses_source")
+    if isinstance(source, str) and not source.startswith("bundled:"):
+        out["houses_source"] = resolve(source)
+    if isinstance(out.get("config"), dict):
+        out["config"] = absolute_paths(DatasetConfig, out["config"])
+    return out
+
+
 def identity_differences(stored: dict, wanted: dict, limit: int = 3) -> str:
     """What differs between a stored run identity and this run's, for the refusal message:
     ``"config.width: 320 there, 64 here; houses_source: ..."`` (the first ``limit``
@@ -107,7 +124,7 @@ def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, ov
         writer.rm("")
     started = writer.get_json(RUN_KEY)
     if started is not None:
-        if {k: started.get(k) for k in run_identity} != run_identity:
+        if comparable({k: started.get(k) for k in run_identity}) != comparable(run_identity):
             raise SceneforgeError(
                 f"{writer.url}: holds an unfinished run with another config or houses; run that command "
                 "again to finish it, or pass --overwrite to start over")
@@ -124,7 +141,7 @@ def prepare(writer: StoreWriter, run_identity: dict, house_ids: list[str], *, ov
         return Preparation("resume", found, tuple(sorted(failed)))
     if writer.exists("zarr.json"):
         attrs = writer.attrs()
-        differs = identity_differences({k: attrs.get(k) for k in run_identity}, run_identity)
+        differs = identity_differences(comparable({k: attrs.get(k) for k in run_identity}), comparable(run_identity))
         if not attrs.get("complete") or differs:
             raise SceneforgeError(f"{writer.url}: holds another store ({differs or 'not marked complete'}); "
                                   "pass --overwrite to replace it, or choose another path")
