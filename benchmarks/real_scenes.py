@@ -11,13 +11,17 @@ every case and prints one row each: the exit code, the lines printed (progress b
 out), whether a traceback appeared, and the line that matters; then whether every case gave
 what it should (a working store, or one line naming the fix).
 
-    python benchmarks/real_scenes.py [--keep DIR]
+    python benchmarks/real_scenes.py [--keep DIR] [--baseline CHECKOUT]
+
+``--baseline`` runs every case again with an earlier checkout's sceneforge (a world of its
+own), so the table of before and after comes from one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -35,8 +39,11 @@ SMALL = ["--views-per-house", "2", "--resolution", "64x48", "--overhead-resoluti
 AREA_LIGHTS = ("BackLight", "FrontLight", "LeftLight", "RightLight")
 
 
-def sceneforge(*args, cwd: Path) -> tuple[int, list[str]]:
-    res = subprocess.run([sys.executable, "-c", CLI, *map(str, args)], capture_output=True, text=True, cwd=cwd)
+def sceneforge(*args, cwd: Path, path: Path | None = None) -> tuple[int, list[str]]:
+    """Run ``sceneforge ARGS`` in ``cwd``: this one, or the package at ``path`` (a baseline)."""
+    env = None if path is None else {**os.environ, "PYTHONPATH": str(path)}
+    res = subprocess.run([sys.executable, "-c", CLI, *map(str, args)], capture_output=True, text=True, cwd=cwd,
+                         env=env)
     lines = [line for line in (res.stdout + res.stderr).splitlines() if line.strip() and not PROGRESS.search(line)]
     return res.returncode, lines
 
@@ -100,9 +107,15 @@ def setup(root: Path) -> None:
     (root / "elsewhere").mkdir()
 
 
+#: the rooms of each house a render case's store must record (toy_0_000 has 3, toy_0_001 2,
+#: the desk room 1): a store of a misread scene (Z-up taken for Y-up: walls for floors) has others
+ROOMS = {"living.zarr": [3], "desk.zarr": [1], "parts.zarr": [2], "export.zarr": [2], "named.zarr": [3]}
+
+
 def cases(root: Path) -> list[tuple[str, list, Path, str]]:
-    """(case, arguments, folder run from, what must hold: "ok" exit 0, "one line" a failure
-    whose one message line names the fix)."""
+    """(case, arguments, folder run from, what must hold: "ok" exit 0 (and a render's store
+    with the houses and rooms of :data:`ROOMS`), "one line" a failure whose one message line
+    names the fix, "hint" the scene-folder hint, "usage" a suggested command)."""
     r, e = root, root / "elsewhere"
     return [
         ("Z-up OBJ, no --up-axis: inspect", ["houses", "inspect", "scenes/living.obj"], r, "ok"),
@@ -123,19 +136,50 @@ def cases(root: Path) -> list[tuple[str, list, Path, str]]:
     ]
 
 
-def run(root: Path) -> int:
+def baseline_package(checkout: Path, into: Path) -> Path:
+    """A folder to put on PYTHONPATH that imports ``checkout``'s sceneforge as installed
+    (its top-level ``cli/`` and ``schemas/`` as ``sceneforge.cli`` and ``sceneforge.schemas``)."""
+    package = into / "sceneforge"
+    package.mkdir(parents=True)
+    for entry in (checkout / "sceneforge").iterdir():
+        if entry.name not in ("cli", "schemas", "__pycache__"):
+            (package / entry.name).symlink_to(entry)
+    for name in ("cli", "schemas"):
+        (package / name).symlink_to(checkout / name)
+    return into
+
+
+def run(root: Path, baseline: Path | None = None) -> int:
     t0 = time.perf_counter()
-    setup(root)
+    setup(root / "now")
+    bad = _run_cases(root / "now", None, "this checkout")
+    if baseline is not None:
+        setup(root / "baseline")
+        path = baseline_package(baseline.resolve(), root / "baseline_package")
+        base_bad = _run_cases(root / "baseline", path, f"baseline: {baseline}")
+        print(f"\nbaseline: {len(cases(root)) - base_bad} of {len(cases(root))} as they should be")
+    print(f"{time.perf_counter() - t0:.0f} s in all")
+    return 1 if bad else 0
+
+
+def _run_cases(root: Path, path: Path | None, title: str) -> int:
+    """Every case in the world at ``root`` with the package at ``path`` (None: this one);
+    prints the table and the facts; returns how many were not as they should be."""
+    print(f"\n{title}\n")
     rows, bad = [], 0
     for name, args, cwd, want in cases(root):
         if name.startswith("... with the scene.json"):
             (root / "scenes" / "export" / "scene.json").write_text('{"files": ["*.obj"]}')
         t = time.perf_counter()
-        code, lines = sceneforge(*args, cwd=cwd)
+        code, lines = sceneforge(*args, cwd=cwd, path=path)
         traceback = any("Traceback" in line for line in lines)
         key = _key_line(lines, want)
+        store = next((a for a in args if str(a).endswith(".zarr")), None) if args[0] == "render" else None
+        rooms = _rooms(cwd / store) if store else None
+        if store:
+            key = f"{key} (rooms: {rooms})"
         good = not traceback and {
-            "ok": code == 0,
+            "ok": code == 0 and (store is None or rooms == ROOMS[store]),
             "hint": any(line.startswith("hint: ") for line in lines),
             "one line": code != 0 and sum(line.startswith(("error:", "failed:")) for line in lines) == 1
             and ("pass --" in key or "did you mean" in key),
@@ -145,10 +189,22 @@ def run(root: Path) -> int:
         rows.append((name, code, len(lines), "yes" if traceback else "no", "yes" if good else "NO",
                      f"{time.perf_counter() - t:.1f}", key))
     _table(rows)
-    _facts(root)
+    if path is None:
+        _facts(root)
     print(f"\n{len(rows)} cases: {len(rows) - bad} as they should be, {bad} not; "
-          f"{sum(r[3] == 'yes' for r in rows)} tracebacks; {time.perf_counter() - t0:.0f} s in all")
-    return 1 if bad else 0
+          f"{sum(r[3] == 'yes' for r in rows)} tracebacks")
+    return bad
+
+
+def _rooms(store: Path) -> list[int] | None:
+    """The rooms of each house the store at ``store`` records (None: no store there)."""
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.store import open_store
+
+    try:
+        return [h.get("rooms") for h in open_store(str(store)).attrs["houses"] if "failure" not in h]
+    except SceneforgeError:
+        return None
 
 
 def _key_line(lines: list[str], want: str) -> str:
@@ -189,19 +245,22 @@ def _facts(root: Path) -> None:
         split = [i.name for i in house.instances if "/" in i.name]
         print(f"{scene}: CeilingLampshade → {classes.get('CeilingLampshade')}; "
               f"area lights kept: {[n for n in AREA_LIGHTS if n in classes]}; {dropped[0] if dropped else 'none dropped'}; "
-              f"split room box: {split or 'none'}; rooms {len(house.rooms)}")
+              f"split envelope meshes: {split or 'none'}; rooms {len(house.rooms)}")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--keep", type=Path, default=None, help="work in this folder and keep it")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="also run every case with the sceneforge of this checkout (e.g. `git worktree add "
+                             "/tmp/before c89d18a`), in a world of its own")
     args = parser.parse_args()
     if args.keep is not None:
         shutil.rmtree(args.keep, ignore_errors=True)
         args.keep.mkdir(parents=True)
-        return run(args.keep)
+        return run(args.keep, args.baseline)
     with tempfile.TemporaryDirectory() as tmp:
-        return run(Path(tmp))
+        return run(Path(tmp), args.baseline)
 
 
 if __name__ == "__main__":
