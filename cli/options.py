@@ -1,6 +1,6 @@
 """Command-line options generated from the config dataclasses, so that every option's help,
 shown default and type come from one place: the field's ``#:`` doc, its default and its
-type hint (STYLE 13, the way tyro does it for nerfstudio, with Click).
+type hint (the way tyro does it for nerfstudio, with Click).
 
 A command declares once which options set which config fields (a list of
 :class:`ConfigOption`); :func:`config_options` adds them with ``--config FILE`` and hands

@@ -1,4 +1,4 @@
-"""Imports run downward only (STYLE 14): no import cycles, and every module imports from its
+"""Imports run downward only: no import cycles, and every module imports from its
 own layer or those below, in the layer order docs/architecture.md states.
 
 Every import that runs counts, function-level ones included; those under

@@ -1,4 +1,4 @@
-"""The README's commands are tested code (STYLE 15).
+"""The README's commands are tested code: a README that drifts from the code fails here.
 
 Every ``bash``, ``console``, ``sh`` and ``python`` block of README.md and docs/*.md is run by
 :func:`test_readme_walkthrough`, in order, in a fresh folder holding a copy of the tracked

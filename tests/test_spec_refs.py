@@ -19,9 +19,10 @@ SPEC = ROOT / "docs" / "spec.md"
 #: the files scanned: tracked or new (not ignored) files of these kinds
 SUFFIXES = {".py", ".md", ".json", ".toml", ".sh", ".cpp", ".cfg", ".ini", ".txt", ".yml", ".yaml"}
 NAMES = {"Makefile"}
-#: a citation of the page that lived outside the repository: the upper-case word alone, as in
-#: "SPEC §4" or "SPEC.md" (environment variables such as FSSPEC_S3_KEY are one longer word)
-OUTSIDE = re.compile(r"\bSPEC\b")
+#: a citation of a page that lived outside the repository: the upper-case word alone, as in
+#: "SPEC §4" or "SPEC.md" (environment variables such as FSSPEC_S3_KEY are one longer word),
+#: or a numbered principle of the team's style guide ("STYLE 14")
+OUTSIDE = re.compile(r"\bSPEC\b|\bSTYLE\s+\d+")
 #: a citation of a section or subsection; ``paper §N`` cites the paper instead
 SECTION = re.compile(r"(?<!paper )§\s?(\d+(?:\.\d+)?)")
 #: the headings of docs/spec.md: ``## N. Title`` and ``### N.M Title``
@@ -41,8 +42,8 @@ def problems(text: str, where: str, sections: set[str]) -> list[str]:
     found = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         if OUTSIDE.search(line):
-            found.append(f"{where}:{lineno}: cites the spec outside the repository; cite docs/spec.md §N: "
-                         f"{line.strip()}")
+            found.append(f"{where}:{lineno}: cites a page outside the repository (the spec: cite docs/spec.md "
+                         f"§N): {line.strip()}")
         for number in SECTION.findall(line):
             if number not in sections:
                 found.append(f"{where}:{lineno}: §{number} is no section of docs/spec.md: {line.strip()}")
@@ -87,6 +88,7 @@ def test_every_citation_is_of_a_section_of_docs_spec():
 def test_the_check_finds_outside_and_dangling_citations():
     sections = {"4", "4.1", "5"}
     text = ("a (SP" "EC §4)\nb (SP" "EC 5)\nsee SP" "EC.md\nFSSPEC_S3_KEY=x SPEC_S3_ENDPOINT=y\n"
-            "docs/spec.md §4.1, §5\ndocs/spec.md §4.2\nthe table of paper §12\n§ 9\n")
-    assert [p.split(":")[1] for p in problems(text, "f", sections)] == ["1", "2", "3", "6", "8"]
+            "docs/spec.md §4.1, §5\ndocs/spec.md §4.2\nthe table of paper §12\n§ 9\nrun tests (ST" "YLE 15)\n"
+            "STYLE.md's anchors\n")
+    assert [p.split(":")[1] for p in problems(text, "f", sections)] == ["1", "2", "3", "6", "8", "9"]
     assert "§4.2 is no section" in problems(text, "f", sections)[3]

@@ -33,7 +33,7 @@ from ..errors import listed
 from .model import House, Instance, make_instance
 from .names import NameMap
 from .rooms import points_in_triangles
-from .shell import CEILING, FLOOR, PARTS, split_shell
+from .shell import CEILING, FLOOR, pieces, split_shell
 
 __all__ = ["clean_up", "drop_outside_emitters", "is_emitter", "split_room_box"]
 
@@ -76,16 +76,13 @@ def split_room_box(house: House, *, keep=lambda inst: False, enclose: float = 0.
     if not ((part == FLOOR).any() and (part == CEILING).any()):
         return None
     scratch = House(id=house.id, instances=[], source_path=house.source_path)
-    for p, name in enumerate(PARTS):
-        faces = part == p
-        if faces.any():  # each part keeps the vertices its faces use, and their materials
-            used, f = np.unique(box.faces[faces], return_inverse=True)
-            fm = None if box.face_material is None else box.face_material[faces]
-            make_instance(scratch, name=f"{box.name}/{name}", category=NYU40_IDS[name], label=box.label,
-                          room_id=box.room_id, vertices=box.vertices[used], faces=f.reshape(-1, 3),
-                          material=box.materials if fm is not None else box.materials[0], face_material=fm,
-                          uv=None if box.uv is None else box.uv[used],
-                          colors=None if box.colors is None else box.colors[used])
+    for name, used, f, faces in pieces(box.faces, part):  # each keeps its vertices and their materials
+        fm = None if box.face_material is None else box.face_material[faces]
+        make_instance(scratch, name=f"{box.name}/{name}", category=NYU40_IDS[name], label=box.label,
+                      room_id=box.room_id, vertices=box.vertices[used], faces=f,
+                      material=box.materials if fm is not None else box.materials[0], face_material=fm,
+                      uv=None if box.uv is None else box.uv[used],
+                      colors=None if box.colors is None else box.colors[used])
     at = house.instances.index(box)
     house.instances[at:at + 1] = scratch.instances
     _renumber(house)

@@ -28,7 +28,7 @@ import numpy as np
 
 from .rooms import points_in_triangles
 
-__all__ = ["CEILING", "FLOOR", "PARTS", "WALL", "split_shell"]
+__all__ = ["CEILING", "FLOOR", "PARTS", "WALL", "pieces", "split_shell"]
 
 WALL, FLOOR, CEILING = 0, 1, 2
 #: part index → the NYU40 class name it becomes
@@ -94,3 +94,22 @@ def _group_part(tri: np.ndarray, up: bool, lattice: np.ndarray, bottom: float, t
     if can_floor and can_ceiling:
         return FLOOR if up else CEILING
     return FLOOR if can_floor else CEILING if can_ceiling else WALL
+
+
+def pieces(faces: np.ndarray, part: np.ndarray):
+    """The parts of a split mesh, each with the vertices its faces use: yields
+    ``(name, used, local_faces, mask)`` per part present, in :data:`PARTS` order.
+
+    faces : (m, 3) int     the mesh's faces
+    part  : (m,) int8      :func:`split_shell`'s part per face
+    name  : str            ``"wall"``, ``"floor"`` or ``"ceiling"``
+    used  : (u,) int       the mesh's vertices the part uses (index its per-vertex arrays)
+    local_faces : (k, 3) int   the part's faces, indexing ``used``
+    mask  : (m,) bool      the part's faces among the mesh's (index its per-face arrays)
+    """
+    faces = np.asarray(faces).reshape(-1, 3)
+    for k, name in enumerate(PARTS):
+        mask = part == k
+        if mask.any():
+            used, local = np.unique(faces[mask], return_inverse=True)
+            yield name, used, local.reshape(-1, 3), mask

@@ -7,12 +7,15 @@ turns its file into meshes (:mod:`~sceneforge.houses.formats.gltf`: one per node
 this module makes instances of the meshes and names them:
 
 - The category of an instance comes from its name through a
-  :class:`~sceneforge.houses.names.NameMap` (the rules of ``LoadOptions.name_map`` before
-  the bundled ones); its ``label`` is the name without Blender-style copy numbers
+  :class:`~sceneforge.houses.names.NameMap` (the rules of ``LoadOptions.name_map`` by first
+  match, then the bundled ones by the name's head word); its ``label`` is the name without Blender-style copy numbers
   (``Chair.001`` → ``Chair``), so that rules on source labels (fireplace, plant, ...) see
   the object's kind. Persons, plants and names sent to ``drop`` are left out; a mesh sent
   to ``shell`` becomes up to three instances ``<name>/wall``, ``<name>/floor`` and
   ``<name>/ceiling`` (:func:`~sceneforge.houses.shell.split_shell`).
+- Names can be wrong where the geometry is not: once every mesh is an instance, a closed
+  room box is split like a shell and light emitters outside every room are dropped
+  (:func:`~sceneforge.houses.cleanup.clean_up`).
 - The scene has no rooms: they are derived from its floors (:mod:`sceneforge.houses.rooms`).
 - ``LoadOptions.scale`` and ``up_axis`` take the source's units and axes to metres, +Y up.
   With ``up_axis`` ``auto`` (the default) every mesh of the file is read first and the axis
@@ -46,7 +49,7 @@ from ..cleanup import clean_up
 from ..model import House, Instance, make_instance
 from ..names import DROP, SHELL, TAG, NameMap, Rule
 from ..rooms import derive_rooms
-from ..shell import PARTS, split_shell
+from ..shell import pieces, split_shell
 from ..up_axis import Part, detect_up_axis
 from .base import Format, HouseSource
 from .gltf import read_gltf
@@ -258,15 +261,12 @@ class _Builder:
             part = split_shell(v, faces)
             uv = None if mesh.uv is None or len(mesh.uv) != len(v) else np.asarray(mesh.uv)
             args = mesh.instance_args()
-            for k, name in enumerate(PARTS):
-                keep = part == k
-                if keep.any():  # each part keeps the vertices its faces use, and their materials
-                    used, f = np.unique(faces[keep], return_inverse=True)
-                    part_args = {**args, "colors": None if args["colors"] is None else np.asarray(args["colors"])[used],
-                                 "face_material": None if args["face_material"] is None
-                                 else np.asarray(args["face_material"])[keep]}
-                    self._add(f"{clean}/{name}", NYU40_IDS[name], label, v[used], f.reshape(-1, 3),
-                              None if uv is None else uv[used], part_args, file)
+            for name, used, f, keep in pieces(faces, part):  # each keeps its vertices and their materials
+                part_args = {**args, "colors": None if args["colors"] is None else np.asarray(args["colors"])[used],
+                             "face_material": None if args["face_material"] is None
+                             else np.asarray(args["face_material"])[keep]}
+                self._add(f"{clean}/{name}", NYU40_IDS[name], label, v[used], f, None if uv is None else uv[used],
+                          part_args, file)
             return
         category = resolve(self.house, label, target, strict=self.options.strict, file=file)
         self._add(clean, category, label, v, faces, mesh.uv, mesh.instance_args(), file)
