@@ -52,6 +52,8 @@ RENDER_OPTIONS = (
     ConfigOption("--rgb-samples", "rgb.samples", type=click.IntRange(min=1)),
     ConfigOption("--rgb-denoise", "rgb.denoise"),
     ConfigOption("--gt-mesh", "store.gt_mesh"),
+    ConfigOption("--intersections", "view.layers.intersections", type=click.IntRange(min=0, max=255), metavar="K"),
+    ConfigOption("--labels", "view.layers.labels"),
 )
 
 

@@ -19,6 +19,7 @@ numpy version is the reference, and the tests hold the two equal on every pixel.
 
 from __future__ import annotations
 
+import typing
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -38,6 +39,25 @@ if TYPE_CHECKING:
     from .cameras import Camera
     from .houses.model import House
     from .raytrace import FrontalHits, Hits, HouseTracer
+
+
+@dataclass(frozen=True)
+class LayersConfig:
+    """What a view's frontal ground truth carries beyond the paper's five layers (docs/spec.md
+    §4.7): both default to what the paper's networks read, so that stores stay lean."""
+
+    #: K: also store the first K surfaces along each pixel's ray, front and back faces alike
+    #: (depth, camera-frame normal, instance, NYU40 class, front or back face), for methods that
+    #: read layered ray intersections (LaRI, LayeredDepth); 0 = none
+    intersections: int = 0
+    #: the labels of D1..D5: "paper" (classes of D1, D3 and D5, instances of D1 and D3, as the
+    #: paper's networks read them) or "all" (a class, an instance and a camera-frame normal for
+    #: each of the five layers, in arrays of their own)
+    labels: typing.Literal["paper", "all"] = "paper"
+
+    def __post_init__(self):
+        if not 0 <= self.intersections <= 255:
+            raise ValueError(f"layers.intersections must be 0..255, got {self.intersections}")
 
 
 @dataclass

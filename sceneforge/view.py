@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .frustum import ViewMesh, ViewMeshConfig, view_mesh
-from .layers import Layers, frontal_layers
+from .layers import Layers, LayersConfig, frontal_layers
 from .overhead import OverheadCamera, OverheadConfig, OverheadTruth, overhead_camera, overhead_truth
 
 if TYPE_CHECKING:
@@ -28,6 +28,8 @@ class ViewConfig:
     overhead: OverheadConfig = field(default_factory=OverheadConfig)
     #: the ground-truth mesh: objects clipped to the frustum, the envelope from D5
     mesh: ViewMeshConfig = field(default_factory=ViewMeshConfig)
+    #: what the frontal layers carry beyond the paper's: K ray-intersection layers, labels of every layer
+    layers: LayersConfig = field(default_factory=LayersConfig)
     #: compute the ground-truth mesh (only the evaluation needs it); a render config sets it
     #: from ``store.gt_mesh``: a view's mesh is computed when the store keeps it
     with_mesh: bool = True

@@ -39,7 +39,7 @@ class ArraySpec:
 
     name        : path in the group, e.g. ``depth`` or ``mesh/objects/faces``
     dims        : symbolic shape: ``N`` views, ``H``/``W`` frontal image, ``Ho``/``Wo``
-                  overhead image, ``V``/``F`` mesh rows, ``N+1`` offsets, or a fixed size
+                  overhead image, ``L`` ray-intersection layers (``view.layers.intersections``), ``V``/``F`` mesh rows, ``N+1`` offsets, or a fixed size
     dtype       : numpy dtype name, or ``string`` for variable-length UTF-8
     fill        : value of a view that was not computed (per-view arrays)
     per_view    : the first axis is the view index (one view per chunk, sharded)
@@ -122,7 +122,8 @@ def array_specs(config: "DatasetConfig", per_view: bool | None = None) -> list[A
 def sizes_of(config: "DatasetConfig", n_views: int) -> dict[str, int]:
     """The symbolic dimensions of :class:`ArraySpec` for ``config`` and ``n_views`` views."""
     r = config.view.overhead.resolution
-    return {"N": n_views, "N+1": n_views + 1, "H": config.height, "W": config.width, "Ho": r, "Wo": r}
+    return {"N": n_views, "N+1": n_views + 1, "H": config.height, "W": config.width, "Ho": r, "Wo": r,
+            "L": config.view.layers.intersections}
 
 
 def conventions_attrs() -> dict:
