@@ -39,7 +39,12 @@ def _first_line(e: BaseException) -> str:
 def check_package(module: str, dist: str, needed_for: str, install: str) -> Check:
     """Import ``module`` (which also loads its system libraries) and report its version."""
     try:
-        imported = importlib.import_module(module)
+        if module == "pyrender":  # headless, as sceneforge renders: no X11 libraries needed
+            from sceneforge.render.raster import import_pyrender
+
+            imported = import_pyrender()
+        else:
+            imported = importlib.import_module(module)
     except Exception as e:  # any import failure (missing module, missing .so) is what we report
         return Check("FAIL", dist, f"cannot import it ({_first_line(e)}); {needed_for} needs it", install)
     try:

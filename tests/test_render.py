@@ -627,3 +627,26 @@ def test_doctor_counts_warnings_apart_from_passes():
     assert summary_line([Check("PASS", "a", ""), Check("FAIL", "b", ""), Check("FAIL", "c", "")]) == \
         "3 checks: 1 passed, 2 failed"
     assert summary_line([Check("PASS", "a", "")]) == "1 check: 1 passed"
+
+
+def test_pyrender_is_imported_in_one_place_and_headless():
+    # pyglet, which pyrender imports for its viewer, loads Xlib unless told it is headless:
+    # on a GPU server without X11 libraries `import pyrender` failed
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    imports = [f"{p.relative_to(root)}:{n}" for folder in ("sceneforge", "cli", "benchmarks")
+               for p in sorted((root / folder).rglob("*.py"))
+               for n, line in enumerate(p.read_text().splitlines(), 1)
+               if re.match(r"\s*(import pyrender\b|from pyrender\b)", line)]
+    raster = [i for i in imports if i.startswith("sceneforge/render/raster.py")]
+    assert len(raster) == 2 and imports == raster, imports  # import_pyrender, and _gl's egl platform after it
+    code = ("import sys, click\n"
+            "from sceneforge.cli.doctor import doctor\n"
+            "try:\n    doctor.main([], standalone_mode=False)\nexcept SystemExit:\n    pass\n"
+            "import pyglet\n"
+            "print(pyglet.options['headless'], sorted(m for m in sys.modules if m.startswith('pyglet') and ('xlib' in m or 'x11' in m)))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == "True []", res.stdout

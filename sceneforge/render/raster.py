@@ -267,7 +267,7 @@ def _shader_dir() -> Path:
 @functools.cache
 def _mesh_shader(min_distance: float) -> str:
     """Path of pyrender's mesh.frag with :data:`_SHADER_PATCHES` applied."""
-    import pyrender
+    pyrender = _gl().pyrender
 
     text = (Path(pyrender.__file__).parent / "shaders" / "mesh.frag").read_text()
     for old, new in _SHADER_PATCHES:
@@ -283,6 +283,25 @@ def _mesh_shader(min_distance: float) -> str:
 
 # ---------------------------------------------------------------------------------------
 # pyrender and EGL
+
+
+def import_pyrender():
+    """pyrender, imported headless: the one place sceneforge imports it.
+
+    pyrender imports its viewer, and with it pyglet, which loads Xlib (and fails without
+    X11's libraries, as on a GPU server: "'NoneType' object has no attribute
+    'XRenderFindVisualFormat'") unless told it is headless before. sceneforge never opens a
+    window: it renders offscreen through EGL. Raises what the import raises.
+    """
+    try:
+        import pyglet
+    except ModuleNotFoundError:  # a pyrender without its viewer's dependency: nothing to tell
+        pass
+    else:
+        pyglet.options["headless"] = True
+    import pyrender
+
+    return pyrender
 
 
 @functools.cache
@@ -301,7 +320,7 @@ def _gl() -> SimpleNamespace:
 
     load_compressors()  # before Mesa's libraries: see there
     try:
-        import pyrender
+        pyrender = import_pyrender()
         from pyrender.platforms import egl  # installs PyOpenGL's EGL platform, even over an earlier one
     except ModuleNotFoundError as e:
         raise MissingDependencyError(e.name or "pyrender", "RGB rendering", INSTALL_RENDER) from None
