@@ -20,6 +20,12 @@ SURFACE_OPTIONS = (
     ConfigOption("--a", "meshing.a", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--threshold", "surface.threshold", type=click.FloatRange(min=0, min_open=True)),
 )
+#: the options of the layered point scores (``evaluate points``, ``evaluate predictions``) and their fields
+POINTS_OPTIONS = (
+    ConfigOption("--points", "points.samples", type=click.IntRange(min=1)),
+    ConfigOption("--fscore-threshold", "points.thresholds", type=click.FloatRange(min=0, min_open=True)),
+    ConfigOption("--intersections/--no-intersections", "points.intersections"),
+)
 #: the options of ``evaluate voxels`` and the config fields they set
 VOXEL_OPTIONS = (
     ConfigOption("--resolution", "voxels.resolution", type=click.IntRange(min=1)),
@@ -102,7 +108,8 @@ def _write(report, text, plot, json_path, title, extra: dict | None = None):
 @click.group()
 def evaluate():
     """Score reconstructions from depth layers against the ground-truth meshes of a store:
-    surface precision/recall (paper Table 1 and the table of paper §5) and voxel IoU."""
+    surface precision/recall (paper Table 1 and the table of paper §5) and voxel IoU; and
+    layered point sets against a store's layers, the way LaRI does (Chamfer-L1, F-score)."""
 
 
 @evaluate.command()
@@ -139,7 +146,7 @@ def _house_split(split_file: str | None, pred, gt: str):
 @evaluate.command()
 @click.argument("pred")
 @click.argument("gt")
-@config_options(EvaluateConfig, SURFACE_OPTIONS)
+@config_options(EvaluateConfig, SURFACE_OPTIONS + POINTS_OPTIONS)
 @_limit
 @_json
 @click.option("--plot", type=click.Path(dir_okay=False), default=None,
@@ -158,11 +165,14 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     Then whether the nets learned: depth abs-rel of D1-D4, segmentation mIoU and overhead
     height L1 of PRED, each beside a baseline that knows only the training houses of the
     split (per-pixel mean depth, most frequent class, mean height), printed as a table and
-    written under "learning" in --json."""
+    written under "learning" in --json.
+
+    Last, the layered point scores of `sceneforge evaluate points` on the same views,
+    written under "layered_points" in --json."""
     from sceneforge.errors import SceneforgeError
     from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
     from sceneforge.evaluate.learning import learning_scores, training_baselines
-    from sceneforge.evaluate.stores import check_matching, empty_views, views_to_score
+    from sceneforge.evaluate.stores import check_matching, empty_views, score_store_points, views_to_score
     from sceneforge.store import open_store
 
     plot = plot or _beside(pred, "predictions")
@@ -200,7 +210,40 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
                                             same_overhead_cameras=prediction.get("camera_run") is None)
     views = _scored(prediction_views(pred_store, gt_store, indices=indices, meshes=gt_meshes), len(indices))
     report = evaluate_views(views, PREDICTION_VARIANTS, config.seed, config.surface, config.meshing)
+    extra["layered_points"] = score_store_points(pred_store, gt_store, _scored(indices, len(indices)),
+                                                 config.points, config.seed)
     _write(report, report.predictions_text(), plot, json_path, f"predictions: {pred} against {gt}", extra)
+
+
+@evaluate.command()
+@click.argument("pred")
+@click.argument("gt")
+@config_options(EvaluateConfig, (ConfigOption("--seed", "seed"), *POINTS_OPTIONS))
+@_limit
+@click.option("--json", "json_path", type=click.Path(dir_okay=False), default=None,
+              help="Also write the table values to this JSON file.")
+def points(pred, gt, config, limit, json_path):
+    """Layered points of PRED (written by `sceneforge predict`, or any store) against those
+    of GT, the way LaRI scores them: per view, Chamfer-L1 and F-score at each threshold of
+    the first surface (visible), of the surfaces behind it (unseen) and of both (all), in
+    the camera frame, as predicted and after a least-squares scale and shift fitted on the
+    first surface; means over views. Each store's ray-intersection layers where it holds
+    them, else its D1-D5. View i of PRED must be view i of GT; no meshes are read."""
+    from sceneforge.errors import SceneforgeError
+    from sceneforge.evaluate.stores import check_matching, score_store_points, views_to_score
+    from sceneforge.store import open_store
+
+    _check(None, json_path, [("prediction store", pred), ("ground-truth store", gt)])
+    pred_store, gt_store = open_store(pred), open_store(gt)
+    indices = views_to_score(pred_store, limit)
+    if not indices:
+        raise SceneforgeError(f"{pred} holds no view to score")
+    check_matching(pred_store, gt_store, indices)
+    report = score_store_points(pred_store, gt_store, _scored(indices, len(indices)), config.points, config.seed)
+    click.echo(report.text())
+    if json_path:
+        write_text(json_path, json.dumps(report.to_dict(), indent=1))
+        click.echo(f"values: {json_path}")
 
 
 def _voxel_line(v) -> str:

@@ -50,6 +50,7 @@ COMMANDS = {
                                  "--json", "{out}/c.json"],
     "evaluate predictions --plot": ["evaluate", "predictions", "{store}", "{store}", "--plot", "{out}/p.png"],
     "evaluate voxels --plot": ["evaluate", "voxels", "{store}", "--resolution", "10", "--plot", "{out}/v.png"],
+    "evaluate points --json": ["evaluate", "points", "{store}", "{store}", "--json", "{out}/p.json"],
     "overhead-camera --plot": ["overhead-camera", HOUSE, "--plot", "{out}/o.png"],
     "predict OUT": ["predict", "{ok}", "{store}", "{out}/pred.zarr"],
     "train --run": ["train", "{store}", "--stage", "depth", "--run", "{out}/run"],

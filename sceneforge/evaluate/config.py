@@ -6,15 +6,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .depth_mesh import MeshingConfig
+from .points import PointsConfig
 from .surface import SurfaceConfig
 from .voxels import VoxelConfig
 
 
 @dataclass(frozen=True)
 class EvaluateConfig:
-    """How reconstructions are scored: surface precision/recall and voxel IoU."""
+    """How reconstructions are scored: surface precision/recall, voxel IoU and layered point sets."""
 
-    #: seed of the surface sampling; view i draws from (seed, i)
+    #: seed of the surface and point sampling; view i draws from (seed, i)
     seed: int = 0
     #: surface sampling and matching (coverage, predictions)
     surface: SurfaceConfig = field(default_factory=SurfaceConfig)
@@ -22,6 +23,8 @@ class EvaluateConfig:
     meshing: MeshingConfig = field(default_factory=MeshingConfig)
     #: the voxel grid (voxels)
     voxels: VoxelConfig = field(default_factory=VoxelConfig)
+    #: layered point sets, LaRI's Chamfer-L1 and F-score (points, predictions)
+    points: PointsConfig = field(default_factory=PointsConfig)
 
     def to_dict(self) -> dict:
         from sceneforge.config import dataclass_to_dict

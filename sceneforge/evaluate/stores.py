@@ -9,13 +9,14 @@ of a store that keeps none), else from the truth store itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import SceneforgeError, plural
 from .inputs import EvalView, GroundTruthMesh
+from .points import INTERSECTION_DEPTH, LayeredView, PointsConfig, PointsReport, score_view
 from .voxels import VoxelConfig, VoxelScore, score_voxels
 
 
@@ -194,3 +195,32 @@ def score_store_voxels(layers, truth=None, config: VoxelConfig | None = None, li
         if on_view:
             on_view(score)
     return VoxelReport(tuple(views))
+
+
+def layered_view(store, i: int, intersections: bool = True) -> LayeredView:
+    """The layers of view ``i`` of ``store`` to score as points (:class:`~sceneforge.evaluate.points.LayeredView`):
+    its ray-intersection layers where it holds them and ``intersections`` is set, else its
+    D1..D5; only the arrays needed are read."""
+    names = ("depth", "K", *((INTERSECTION_DEPTH,) if intersections and INTERSECTION_DEPTH in store.names else ()))
+    return LayeredView.from_arrays({name: np.asarray(store.array(name)[i]) for name in names}, intersections)
+
+
+def score_store_points(pred, gt, indices: Iterable[int], config: PointsConfig | None = None,
+                       seed: int = 0) -> PointsReport:
+    """LaRI's layered point scores (docs/spec.md §11.6) of views ``indices`` of the
+    predictions ``pred`` against the same views of ``gt`` (the caller checks that they are
+    the same views: :func:`check_matching`); each side's layers from :func:`layered_view`.
+    View ``i`` draws its samples from ``np.random.default_rng((seed, i))``."""
+    config = config or PointsConfig()
+    done, scores = [], []
+    for i in indices:
+        p, g = layered_view(pred, i, config.intersections), layered_view(gt, i, config.intersections)
+        if p.layers.shape[1:] != g.layers.shape[1:]:
+            raise SceneforgeError(f"view {i}: the prediction's image is {p.layers.shape[2]}x{p.layers.shape[1]} but "
+                                  f"the truth's {g.layers.shape[2]}x{g.layers.shape[1]}: the scale-shift fit pairs "
+                                  "their pixels")
+        scores.append(score_view(p, g, np.random.default_rng((seed, i)), config))
+        done.append(i)
+    sources = ["intersections" if config.intersections and INTERSECTION_DEPTH in s.names else "layers"
+               for s in (pred, gt)]
+    return PointsReport.collect(done, scores, config, seed, *sources)
