@@ -163,6 +163,9 @@ class Tolerances:
     #: depths are stored as float32 (an ulp is ~1e-6 m at 10 m): checks of the layer order
     #: on a store's depths allow this much
     stored_depth: float = 1e-5
+    #: normals are stored as float32 unit vectors: their lengths, and two stored normals of
+    #: one face (rotated into the camera frame by different routes), agree to this, unitless
+    stored_normal: float = 1e-5
     #: a sampled eye is above the floor when the floor hit straight below it is at eye
     #: height to within this (the eye is placed at eye height over a floor triangle)
     eye_above_floor: float = 1e-3

@@ -15,6 +15,11 @@ planar depth. The rules run in sceneforge's compiled extension where it is built
 over each ray's sorted hits, :func:`sceneforge.raytrace._embree.layer_rules`), else on
 whole arrays of hits with numpy segment operations, never a Python loop over rays; the
 numpy version is the reference, and the tests hold the two equal on every pixel.
+
+Asked for the labels of every layer (docs/spec.md §4.7, ``LayersConfig.labels == "all"``),
+both also name the hit that fills each of D1..D4; with the closing hit's face for D5, every
+layer has a face, hence a class, an instance and a camera-frame winding normal. Otherwise
+nothing of that is computed.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ COMPILED_RULES = _compiled_rules is not None
 if TYPE_CHECKING:
     from .cameras import Camera
     from .houses.model import House
-    from .raytrace import FrontalHits, Hits, HouseTracer
+    from .raytrace import FrontalHits, Hits, HouseTracer, HouseTriangles
 
 
 @dataclass(frozen=True)
@@ -71,12 +76,27 @@ class Layers:
                D3); -1 where none
     normal   : (3, H, W) float32  unit normal of the first surface hit, camera frame (OpenCV
                axes), turned to face the camera; NaN where the ray hits nothing
+
+    The labels of every layer (docs/spec.md §4.7), None unless asked for (``labels``):
+
+    layer_category : (5, H, W) uint8    NYU40 class of the surface of D1..D5 (D2 has D1's, D4
+                     D3's); 0 where the layer is empty
+    layer_instance : (5, H, W) int32    house instance of the surface of D1..D5 (D5: the closing
+                     hit's envelope instance); -1 where empty
+    layer_face     : (5, H, W) int64    the face (``HouseTriangles.global_index``) each of D1..D5
+                     lies on; -1 where empty
+    layer_normal   : (5, 3, H, W) float32  unit winding normal of that face, camera frame, not
+                     turned to face the camera; NaN where empty
     """
 
     depth: np.ndarray
     category: np.ndarray
     instance: np.ndarray
     normal: np.ndarray
+    layer_category: np.ndarray | None = None
+    layer_instance: np.ndarray | None = None
+    layer_face: np.ndarray | None = None
+    layer_normal: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -126,6 +146,8 @@ def layers_from_hits(
     shape: tuple[int, int],
     keep=None,
     normals=None,
+    triangles: "HouseTriangles | None" = None,
+    camera: "Camera | None" = None,
 ) -> Layers:
     """Apply the layer rules of docs/spec.md §4 to every pixel at once.
 
@@ -138,8 +160,12 @@ def layers_from_hits(
                     runs (the overhead view drops ceilings, walls, ... this way, docs/spec.md §7.1)
     normals       : (H*W, 3) float, optional  first-hit normals in the camera frame, NaN
                     where none; copied into ``Layers.normal`` (NaN everywhere when omitted)
+    triangles, camera : the tracer's :class:`~sceneforge.raytrace.HouseTriangles` and the
+                    view's camera, optional: given both, the labels of every layer
+                    (``Layers.layer_*``, docs/spec.md §4.7)
     """
     n = _check_view(hits.n_rays, depth_scale, shape)
+    labels = _wants_labels(triangles, camera)
     inst_category = np.asarray(inst_category, dtype=np.uint8)
     inst_envelope = np.asarray(inst_envelope, dtype=bool)
     if inst_category.shape != inst_envelope.shape:
@@ -151,11 +177,13 @@ def layers_from_hits(
         )
 
     ray, t, inst = hits.ray_ids(), hits.t, hits.instance.astype(np.int64)
+    face = triangles.global_index(hits.instance, hits.triangle) if labels else None
     if keep is not None:
         keep = np.asarray(keep, dtype=bool)
         if keep.shape != t.shape:
             raise ValueError(f"keep must be ({len(t)},) bool, got shape {keep.shape}")
         ray, t, inst = ray[keep], t[keep], inst[keep]
+        face = face[keep] if labels else None
     envelope = inst_envelope[inst]
 
     # rule 1: the first envelope hit closes the ray (D5), give or take the slack
@@ -168,25 +196,66 @@ def layers_from_hits(
     obj = ~envelope & (t <= cutoff[ray])
     offsets = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(ray[obj], minlength=n), out=offsets[1:])
-    return apply_rules(offsets, t[obj], inst[obj], closing_t, closing_inst, depth_scale,
-                       inst_category, shape, normals)
+    closing_face = None
+    if labels:
+        closing_face = np.full(n, -1, dtype=np.int64)
+        closing_face[ray[e]] = face[e]
+        face = face[obj]
+    layers = apply_rules(offsets, t[obj], inst[obj], closing_t, closing_inst, depth_scale,
+                         inst_category, shape, normals, face=face, closing_face=closing_face)
+    return _with_layer_normals(layers, triangles, camera) if labels else layers
 
 
 def layers_from_frontal(
-    hits: "FrontalHits", depth_scale, inst_category, shape: tuple[int, int], normals=None
+    hits: "FrontalHits", depth_scale, inst_category, shape: tuple[int, int], normals=None,
+    triangles: "HouseTriangles | None" = None, camera: "Camera | None" = None,
 ) -> Layers:
     """The layers of docs/spec.md §4 from a :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`
     (the same as :func:`layers_from_hits` on every hit, without sorting the closing hits in).
 
     hits          : the frontal query of the H*W rays of a view, row-major pixel order
-    depth_scale, inst_category, shape, normals : as for :func:`layers_from_hits`
+    depth_scale, inst_category, shape, normals, triangles, camera : as for :func:`layers_from_hits`
     """
     n = _check_view(hits.objects.n_rays, depth_scale, shape)
+    labels = _wants_labels(triangles, camera)
     objects, closing = hits.objects, hits.closing
     if len(closing.t) != n:
         raise ValueError(f"closing hits are for {len(closing.t)} rays, expected {n}")
-    return apply_rules(objects.offsets, objects.t, objects.instance, closing.t, closing.instance,
-                       depth_scale, np.asarray(inst_category, dtype=np.uint8), shape, normals)
+    # D1..D4 are object hits of the all-hit query; D5 is the closing first hit, which knows its face
+    face = triangles.global_index(objects.instance, objects.triangle) if labels else None
+    layers = apply_rules(objects.offsets, objects.t, objects.instance, closing.t, closing.instance,
+                         depth_scale, np.asarray(inst_category, dtype=np.uint8), shape, normals,
+                         face=face, closing_face=closing.face if labels else None)
+    return _with_layer_normals(layers, triangles, camera) if labels else layers
+
+
+def _wants_labels(triangles, camera) -> bool:
+    """Whether the labels of every layer are asked for: given both the triangles and the camera."""
+    if (triangles is None) != (camera is None):
+        raise ValueError("the labels of every layer need both the house's triangles and the camera")
+    return triangles is not None
+
+
+def _with_layer_normals(layers: Layers, triangles: "HouseTriangles", camera: "Camera") -> Layers:
+    """``layers`` with ``layer_normal`` (5, 3, H, W) float32: the camera-frame winding normal of
+    each layer's face (``layer_face``), not turned to face the camera; NaN where empty."""
+    R = camera.cam_to_world[:3, :3]
+    face = layers.layer_face
+    # rotated normals in a table whose last column, NaN, is what face -1 (none) reads: every
+    # face's normal, or, in a house of more faces than the layers have pixels, each pixel's
+    if len(triangles.offset) <= face.size:
+        normals = triangles.normal_xyz
+    else:
+        normals = triangles.normal_xyz[:, face.reshape(-1)]
+        face = np.where(face >= 0, np.arange(face.size).reshape(face.shape), -1)
+    table = np.empty((3, normals.shape[1] + 1), dtype=np.float32)
+    table[:, :-1] = R.T @ normals
+    table[:, -1] = np.nan
+    normal = np.empty((5, 3, *layers.shape), dtype=np.float32)
+    for k in range(5):
+        np.take(table, face[k], axis=1, out=normal[k])
+    layers.layer_normal = normal
+    return layers
 
 
 def _check_view(n_rays: int, depth_scale, shape: tuple[int, int]) -> int:
@@ -202,7 +271,7 @@ def _check_view(n_rays: int, depth_scale, shape: tuple[int, int]) -> int:
 
 def apply_rules(
     offsets, t, inst, closing_t, closing_inst, depth_scale, inst_category, shape, normals=None,
-    compiled: bool | None = None,
+    compiled: bool | None = None, face=None, closing_face=None,
 ) -> Layers:
     """The layer rules of docs/spec.md §4.2–§4.3 on the object hits a ray's closing hit lets through.
 
@@ -213,8 +282,17 @@ def apply_rules(
     compiled                : run the compiled rules (True), the numpy reference (False), or
                               the compiled ones where the extension is built (None); the
                               same layers either way
+    face, closing_face      : (k,) and (H*W,) int64, optional: the face of each object hit and
+                              of each closing hit (-1: none); given both, the rules also name
+                              the hit filling each layer, and the layers carry the labels of
+                              every layer (``layer_category``, ``layer_instance``, ``layer_face``;
+                              ``layer_normal`` is left to the callers that know the camera)
     """
     n = shape[0] * shape[1]
+    if (face is None) != (closing_face is None):
+        raise ValueError("the labels of every layer need both face and closing_face")
+    # (4, n) int64: the object hit filling each of D1..D4 (-1: none), only when labels are asked for
+    hit = None if face is None else np.full((4, n), -1, dtype=np.int64)
     offsets = np.ascontiguousarray(offsets, dtype=np.int64)
     if len(offsets) != n + 1:
         raise ValueError(f"offsets must have {n + 1} entries for a {shape[0]}×{shape[1]} view, got {len(offsets)}")
@@ -232,29 +310,49 @@ def apply_rules(
             offsets, np.ascontiguousarray(t, dtype=np.float64), np.ascontiguousarray(inst, dtype=np.int32),
             np.ascontiguousarray(closing_t, dtype=np.float64), np.ascontiguousarray(closing_inst, dtype=np.int32),
             scale, np.ascontiguousarray(inst_category, dtype=np.uint8), float(tol.same_instance_hit),
-            depth, category, instance)
+            depth, category, instance, *([] if hit is None else [hit]))
     else:
         ray = np.repeat(np.arange(n, dtype=np.int64), np.diff(offsets))
         depth, category, instance = _numpy_rules(ray, np.asarray(t), np.asarray(inst, dtype=np.int64),
                                                  np.asarray(closing_t), np.asarray(closing_inst, dtype=np.int64),
-                                                 scale, inst_category, n)
+                                                 scale, inst_category, n, hit)
     H, W = shape
     if normals is None:
         normal = np.full((3, n), np.nan, dtype=np.float32)
     else:
         normal = np.asarray(normals, dtype=np.float32).reshape(n, 3).T.copy()
-    return Layers(
+    layers = Layers(
         depth=depth.reshape(5, H, W),
         category=category.reshape(3, H, W),
         instance=instance.reshape(2, H, W),
         normal=normal.reshape(3, H, W),
     )
+    if hit is not None:
+        _label_layers(layers, hit, face, closing_inst, closing_face)
+    return layers
 
 
-def _numpy_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_category, n):
+def _label_layers(layers: Layers, hit, face, closing_inst, closing_face) -> None:
+    """Set the labels of every layer of ``layers``: classes and instances from its paper ones
+    (D2 is a hit of D1's instance, D4 of D3's; D5's instance is the closing hit's), faces from
+    the hit filling each of D1..D4 (``hit`` (4, n) int64 into the object hits, whose faces are
+    ``face`` (k,); -1: none) and the closing hits' ``closing_face`` (n,)."""
+    H, W = layers.shape
+    layers.layer_category = layers.category[[0, 0, 1, 1, 2]]
+    layers.layer_instance = np.concatenate([layers.instance[[0, 0, 1, 1]],
+                                            np.asarray(closing_inst, dtype=np.int32).reshape(1, H, W)])
+    layer_face = np.empty((5, H, W), dtype=np.int64)
+    # hit -1 (an empty layer) reads the appended -1
+    np.take(np.append(np.asarray(face, dtype=np.int64), np.int64(-1)), hit.reshape(4, H, W), out=layer_face[:4])
+    layer_face[ENVELOPE_LAYER] = np.asarray(closing_face).reshape(H, W)
+    layers.layer_face = layer_face
+
+
+def _numpy_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_category, n, hit=None):
     """The reference rules (:func:`apply_rules`) on whole arrays: (5, n) float32 depths, (3, n)
     uint8 classes and (2, n) int32 instances, from the object hits ``ray, t, inst`` (k,)
-    sorted by ray, then distance."""
+    sorted by ray, then distance. ``hit`` (4, n) int64, optional, filled with -1: receives the
+    index of the object hit filling each of D1..D4."""
     depth = np.full((5, n), np.nan, dtype=np.float32)
     category = np.zeros((3, n), dtype=np.uint8)
     instance = np.full((2, n), -1, dtype=np.int32)
@@ -263,6 +361,8 @@ def _numpy_rules(ray, t, inst, closing_t, closing_inst, depth_scale, inst_catego
         """Write hits ``index`` (at most one per ray) into depth layer ``layer``; return their rays."""
         r = ray[index]
         depth[layer, r] = t[index] * depth_scale[r]
+        if hit is not None:
+            hit[layer, r] = index
         return r
 
     # D5: the closing hit (NaN distance where none: NaN depth; instance -1: the appended 0)
@@ -330,9 +430,10 @@ def frontal_normals(hits: "FrontalHits", tracer: "HouseTracer", camera: "Camera"
     return _camera_normals(tri, face, front, camera)
 
 
-def _camera_normals(tri, face: np.ndarray, front: np.ndarray, camera: "Camera") -> np.ndarray:
+def _camera_normals(tri, face: np.ndarray, front: np.ndarray | None, camera: "Camera") -> np.ndarray:
     """(n, 3) float32 camera-frame winding normals of faces ``face`` (n,) (-1: none, NaN),
-    flipped where ``front`` is False so that they face the camera. A transposed view of a
+    flipped where ``front`` is False so that they face the camera (``front`` None: none
+    flipped, the winding normals themselves). A transposed view of a
     (3, n) array, the layout :class:`Layers` stores. Every face's normal is rotated once
     when there are fewer faces than rays, else each ray's."""
     R = camera.cam_to_world[:3, :3]
@@ -344,7 +445,8 @@ def _camera_normals(tri, face: np.ndarray, front: np.ndarray, camera: "Camera") 
         normals = (R.T @ tri.normal_xyz)[:, f]
     else:
         normals = R.T @ tri.normal_xyz[:, f]
-    normals *= np.where(front if everywhere else front[hit], 1.0, -1.0)
+    if front is not None:
+        normals *= np.where(front if everywhere else front[hit], 1.0, -1.0)
     if everywhere:
         out[:] = normals
     else:
@@ -352,17 +454,27 @@ def _camera_normals(tri, face: np.ndarray, front: np.ndarray, camera: "Camera") 
     return out.T
 
 
-def frontal_layers(house: "House", camera: "Camera", tracer: "HouseTracer | None" = None) -> Layers:
+def frontal_layers(
+    house: "House", camera: "Camera", tracer: "HouseTracer | None" = None, labels: bool = False,
+    hits: "FrontalHits | None" = None,
+) -> Layers:
     """D1..D5, classes, instances and first-hit normals of one view of ``house``.
 
     tracer : a :class:`~sceneforge.raytrace.HouseTracer` of ``house``, reused across views
              (built here when omitted)
+    labels : also the labels of every layer (``Layers.layer_*``, docs/spec.md §4.7;
+             ``LayersConfig.labels == "all"``)
+    hits   : the view's :meth:`~sceneforge.raytrace.HouseTracer.frontal_query`, when the caller
+             has it (:func:`sceneforge.intersections.layers_and_intersections`); traced here
+             when omitted
     """
     from .raytrace import HouseTracer
 
     tracer = tracer or HouseTracer(house)
     origins, directions, depth_scale = camera.rays()
-    hits = tracer.frontal_query(origins, directions)
+    if hits is None:
+        hits = tracer.frontal_query(origins, directions)
     category, _ = instance_labels(house)
     return layers_from_frontal(hits, depth_scale, category, camera.shape,
-                               normals=frontal_normals(hits, tracer, camera))
+                               normals=frontal_normals(hits, tracer, camera),
+                               triangles=tracer.triangles if labels else None, camera=camera if labels else None)

@@ -1,8 +1,8 @@
 """Everything for one view of one house: ``compute_view(house, camera, config)``, no I/O.
 
 The frontal layers (docs/spec.md §4), the ground-truth mesh (§5), the overhead camera (§6) and the
-overhead ground truth (§7), in that order, all from one :class:`HouseTracer` that the
-caller builds once per house and reuses for every view.
+overhead ground truth (§7), in that order, and the ray-intersection layers when asked for (§4.7),
+all from one :class:`HouseTracer` that the caller builds once per house and reuses for every view.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .frustum import ViewMesh, ViewMeshConfig, view_mesh
+from .intersections import Intersections, layers_and_intersections
 from .layers import Layers, LayersConfig, frontal_layers
 from .overhead import OverheadCamera, OverheadConfig, OverheadTruth, overhead_camera, overhead_truth
 
@@ -44,6 +45,8 @@ class ViewGroundTruth:
     overhead_camera : the virtual camera with its candidate boxes and parameters
     overhead        : overhead layers (5, Ho, Wo), height map and classes
     mesh            : frustum-clipped objects and the D5 envelope surface, or None when not asked for
+    intersections   : the first K surfaces along each pixel's ray (K = ``layers.intersections``
+                      of the config, docs/spec.md §4.7), or None when K is 0
     """
 
     camera: "Camera"
@@ -51,6 +54,7 @@ class ViewGroundTruth:
     overhead_camera: OverheadCamera
     overhead: OverheadTruth
     mesh: ViewMesh | None
+    intersections: Intersections | None = None
 
 
 def compute_view(
@@ -65,7 +69,11 @@ def compute_view(
 
     config = config or ViewConfig()
     tracer = tracer or HouseTracer(house)
-    layers = frontal_layers(house, camera, tracer)
+    labels, k = config.layers.labels == "all", config.layers.intersections
+    if k:  # both from one traversal per ray
+        layers, intersections = layers_and_intersections(house, camera, k, tracer, labels=labels)
+    else:
+        layers, intersections = frontal_layers(house, camera, tracer, labels=labels), None
     top = overhead_camera(house, camera, layers, config.overhead)
     return ViewGroundTruth(
         camera=camera,
@@ -73,4 +81,5 @@ def compute_view(
         overhead_camera=top,
         overhead=overhead_truth(house, top, tracer, config.overhead),
         mesh=view_mesh(house, camera, layers, config.mesh, tracer) if config.with_mesh else None,
+        intersections=intersections,
     )

@@ -266,9 +266,11 @@ def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device
 
 
 def _prediction_config(config: "DatasetConfig") -> "DatasetConfig":
-    """The source store's render config, less what no net predicts: RGB, normals, meshes."""
+    """The source store's render config, less what no net predicts: RGB, normals, the labels of
+    every layer, the ray-intersection layers, meshes."""
     return replace(config, rgb=replace(config.rgb, enabled=False),
-                   store=replace(config.store, normals=False, gt_mesh="none"))
+                   store=replace(config.store, normals=False, gt_mesh="none"),
+                   view=replace(config.view, layers=replace(config.view.layers, labels="paper", intersections=0)))
 
 
 class _Shards:

@@ -26,6 +26,11 @@ closing hit, replace an all-hit query through every wall of the house (on the bu
 multi-room toy houses a view has 2–6× fewer hits and is traced 1.3–3× faster), with the
 same layers. :meth:`HouseTracer.frontal_hits` gives the same hits as one sorted list.
 
+:meth:`HouseTracer.nearest_hits` gives each ray's first k hits over the whole house (the
+ray-intersection layers of docs/spec.md §4.7): the Embree extension keeps them as it
+traverses and stops where no farther hit can be among them, and
+:meth:`HouseTracer.frontal_nearest` takes a view's frontal query from that same traversal.
+
 Where all rays share their origin (a perspective camera) or direction (an orthographic
 one), pass it as one row broadcast to (n, 3) (``np.broadcast_to``, as :meth:`Camera.rays`
 does): the plane-distance terms are then computed once per face instead of per hit.
@@ -46,7 +51,7 @@ from ..errors import HouseError, SceneforgeError
 if TYPE_CHECKING:
     from ..houses.model import House
 
-__all__ = ["BACKENDS", "Backend", "CollectingBackend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "Rays", "default_backend", "nearest_candidates"]
+__all__ = ["BACKENDS", "Backend", "CollectingBackend", "FirstHit", "FrontalHits", "Hits", "HouseTracer", "HouseTriangles", "NearestHits", "NearestSurfaces", "Rays", "default_backend", "nearest_candidates"]
 
 #: Engine names accepted by :class:`HouseTracer`.
 BACKENDS = ("embree", "open3d", "reference")
@@ -130,6 +135,48 @@ class FirstHit:
         hit = self.face >= 0
         out[hit] = self.face_normals[self.face[hit]]
         return out
+
+
+@dataclass
+class NearestHits:
+    """The first ``k`` hits of each ray: its :class:`Hits` (every hit, same-instance hits
+    merged) in order of float64 distance, exact ties by instance, then triangle, cut after
+    the k-th; layer-major, layer j of ray r at ``[j, r]``.
+
+    t            : (k, n) float64  distance along the unit direction; NaN past the ray's last hit
+    face         : (k, n) int64    index of the triangle in the tracer's ``HouseTriangles.faces``;
+                   -1 past the last hit
+    front_facing : (k, n) bool     the ray meets the triangle's front side; False past the last hit
+    """
+
+    t: np.ndarray
+    face: np.ndarray
+    front_facing: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(n,) int64 hits kept per ray (at most k)."""
+        return (self.face >= 0).sum(axis=0)
+
+
+@dataclass
+class NearestSurfaces:
+    """:class:`NearestHits` as a view stores them (:meth:`HouseTracer.nearest_surfaces`);
+    layer j of ray r at ``[j, r]`` (normals: ``[j, :, r]``).
+
+    depth        : (k, n) float32     ``t * depth_scale``; NaN past the ray's last hit
+    normal       : (k, 3, n) float32  the face's unit winding normal rotated by ``rotation``
+                   (not turned to face the ray); NaN past the last hit
+    instance     : (k, n) int32       house instance index; -1 past the last hit
+    label        : (k, n) uint8       ``labels`` of the instance; 0 past the last hit
+    front_facing : (k, n) bool        the ray meets the face's front side; False past the last hit
+    """
+
+    depth: np.ndarray
+    normal: np.ndarray
+    instance: np.ndarray
+    label: np.ndarray
+    front_facing: np.ndarray
 
 
 @dataclass
@@ -307,6 +354,17 @@ class CollectingBackend(Backend, Protocol):
     def first_hit(self, rays: Rays, instances: np.ndarray | None = None) -> "FirstHit":
         """What :meth:`HouseTracer.first_hit` makes of :meth:`intersect_first`, bit for bit."""
 
+    def nearest(self, rays: Rays, k: int) -> "NearestHits":
+        """What :func:`_nearest_hits` makes of ``intersect_all(rays)``, bit for bit."""
+
+    def nearest_surfaces(self, rays: Rays, k: int, depth_scale: np.ndarray, rotation: np.ndarray,
+                         labels: np.ndarray) -> "NearestSurfaces":
+        """What :func:`_nearest_surfaces` makes of :meth:`nearest`, bit for bit."""
+
+    def frontal_nearest(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, k: int, depth_scale: np.ndarray,
+                        rotation: np.ndarray, labels: np.ndarray) -> "tuple[FrontalHits, NearestSurfaces]":
+        """:meth:`frontal` (``envelope_near`` 0) and :meth:`nearest_surfaces` in one call, bit for bit."""
+
 
 #: how far (m) past ``t_max`` an engine's own (e.g. float32) distance must be before it
 #: may leave a crossing out; generous against rounding, tiny against room sizes
@@ -425,6 +483,59 @@ def _same_instance_repeats(ray: np.ndarray, t: np.ndarray, instance: np.ndarray)
     return duplicate if duplicate.any() else None
 
 
+def _nearest_hits(triangles: HouseTriangles, rays: Rays, ray: np.ndarray, face: np.ndarray, k: int) -> NearestHits:
+    """The first ``k`` hits of each ray from an engine's unordered (ray, face) crossings.
+
+    As :func:`_collect_hits` (float64 plane distances, crossings without a finite one
+    dropped, same-instance repeats merged), but ordered per ray by the exact distance, then
+    face, not by :func:`_order_by_ray_and_distance`'s batch-wide key, which may take two
+    hits less than ~1e-9 m apart for a tie: the layers of a ray then do not depend on the
+    other rays of the batch.
+    """
+    n = len(rays)
+    ray = np.asarray(ray, dtype=np.int64)
+    face = np.asarray(face, dtype=np.int64)
+    t, cos = _plane_distance(triangles, face, ray, rays)
+    valid = np.isfinite(t)
+    if not valid.all():
+        ray, face, t, cos = ray[valid], face[valid], t[valid], cos[valid]
+    order = np.lexsort((face, t, ray))
+    ray, face, t, cos = ray[order], face[order], t[order], cos[order]
+    duplicate = _same_instance_repeats(ray, t, triangles.instance[face])
+    if duplicate is not None:
+        keep = ~duplicate
+        ray, face, t, cos = ray[keep], face[keep], t[keep], cos[keep]
+    first = np.searchsorted(ray, np.arange(n))
+    rank = np.arange(len(ray)) - first[ray]
+    keep = rank < k
+    ray, rank = ray[keep], rank[keep]
+    out = NearestHits(np.full((k, n), np.nan), np.full((k, n), -1, dtype=np.int64), np.zeros((k, n), dtype=bool))
+    out.t[rank, ray] = t[keep]
+    out.face[rank, ray] = face[keep]
+    out.front_facing[rank, ray] = cos[keep] < 0
+    return out
+
+
+def _nearest_surfaces(triangles: HouseTriangles, hits: NearestHits, depth_scale: np.ndarray, rotation: np.ndarray,
+                      labels: np.ndarray) -> NearestSurfaces:
+    """:class:`NearestSurfaces` of ``hits``; each value computed as the extension's
+    ``nearest_surfaces`` does (float64 products, sums in the same order, then rounded).
+
+    depth_scale : (n,) float64   rotation : (3, 3) float64   labels : (n_instances,) uint8
+    """
+    hit = hits.face >= 0
+    face = np.where(hit, hits.face, 0)
+    depth = np.full(hit.shape, np.nan, dtype=np.float32)
+    depth[hit] = (hits.t * depth_scale)[hit]
+    x, y, z = (triangles.normal_xyz[a][face] for a in range(3))
+    normal = np.full((hit.shape[0], 3, hit.shape[1]), np.nan, dtype=np.float32)
+    for a, (ra, rb, rc) in enumerate(rotation):
+        normal[:, a][hit] = (ra * x + rb * y + rc * z)[hit]
+    instance = np.where(hit, triangles.instance[face], -1).astype(np.int32)
+    label = np.where(hit, labels[triangles.instance[face]], 0).astype(np.uint8)
+    return NearestSurfaces(depth, normal, instance, label, hits.front_facing)
+
+
 def _order_by_ray_and_distance(ray: np.ndarray, t: np.ndarray, face: np.ndarray) -> np.ndarray:
     """(k,) int64 permutation sorting hits by ray, then distance, then face (exact ties)."""
     if not len(t):
@@ -478,6 +589,11 @@ def nearest_candidates(
     first = np.r_[True, ray[1:] != ray[:-1]]
     out[ray[first]] = face[first]
     return out
+
+
+def _check_k(k) -> None:
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise ValueError(f"k must be an integer >= 1, got {k!r}")
 
 
 def default_backend() -> str:
@@ -548,6 +664,72 @@ class HouseTracer:
             return collect(rays, instances, cutoff)
         ray, face = self.backend.intersect_all(rays, instances, t_max=cutoff)
         return _collect_hits(self.triangles, rays, ray, face, cutoff)
+
+    def nearest_hits(self, origins, directions, k: int) -> NearestHits:
+        """The first ``k`` hits of each ray over the whole house (objects and envelope, back
+        faces too): :meth:`all_hits` in exact distance order, cut after the k-th
+        (docs/spec.md §4.7). The Embree extension keeps each ray's nearest hits as it
+        traverses and stops where no farther hit can be among them; the other engines
+        take every hit and cut.
+
+        origins, directions : (n, 3) float  ray origins and unit directions, world
+        k                   : hits per ray, >= 1
+        """
+        _check_k(k)
+        rays = Rays.check(origins, directions)
+        nearest = getattr(self.backend, "nearest", None)
+        if nearest is not None:
+            return nearest(rays, int(k))
+        ray, face = self.backend.intersect_all(rays)
+        return _nearest_hits(self.triangles, rays, ray, face, int(k))
+
+    def nearest_surfaces(self, origins, directions, k: int, depth_scale, rotation, labels) -> NearestSurfaces:
+        """:meth:`nearest_hits` as a view stores them: the distance times ``depth_scale``
+        (planar depth), the face's winding normal rotated by ``rotation`` (into the camera
+        frame), the instance and its entry of ``labels`` (its class). The Embree extension
+        writes these as it finishes each ray; the same values as from :meth:`nearest_hits`.
+
+        origins, directions : (n, 3) float  ray origins and unit directions, world
+        k                   : hits per ray, >= 1
+        depth_scale         : (n,) float  what a hit's distance is multiplied by
+        rotation            : (3, 3) float  what a face's normal is multiplied by
+        labels              : (n_instances,) uint8  a value per instance
+        """
+        scale, rotation, labels = self._surface_args(len(np.asarray(directions)), depth_scale, rotation, labels)
+        surfaces = getattr(self.backend, "nearest_surfaces", None)
+        if surfaces is not None:
+            _check_k(k)
+            return surfaces(Rays.check(origins, directions), int(k), scale, rotation, labels)
+        return _nearest_surfaces(self.triangles, self.nearest_hits(origins, directions, k), scale, rotation, labels)
+
+    def frontal_nearest(self, origins, directions, k: int, depth_scale, rotation, labels
+                        ) -> tuple[FrontalHits, NearestSurfaces]:
+        """:meth:`frontal_query` (the default objects and envelope) and :meth:`nearest_surfaces`
+        of the same rays, from one traversal per ray where the engine can (the Embree
+        extension: the object hits up to each ray's closing hit are among the nearest hits
+        it keeps); the same results as the two queries. Arguments as for those."""
+        fused = getattr(self.backend, "frontal_nearest", None)
+        if fused is None:
+            return (self.frontal_query(origins, directions),
+                    self.nearest_surfaces(origins, directions, k, depth_scale, rotation, labels))
+        _check_k(k)
+        rays = Rays.check(origins, directions)
+        scale, rotation, labels = self._surface_args(len(rays), depth_scale, rotation, labels)
+        return fused(rays, *self._frontal_masks(None, None), int(k), scale, rotation, labels)
+
+    def _surface_args(self, n: int, depth_scale, rotation, labels) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`nearest_surfaces`'s ``depth_scale`` (n,), ``rotation`` (3, 3) and ``labels``
+        (n_instances,), checked, as float64, float64 and uint8."""
+        scale = np.asarray(depth_scale, dtype=np.float64).reshape(-1)
+        if len(scale) != n:
+            raise ValueError(f"depth_scale has {len(scale)} values for {n} rays")
+        rotation = np.ascontiguousarray(rotation, dtype=np.float64)
+        if rotation.shape != (3, 3):
+            raise ValueError(f"rotation must be (3, 3), got {rotation.shape}")
+        labels = np.ascontiguousarray(labels, dtype=np.uint8)
+        if labels.shape != (self.triangles.n_instances,):
+            raise ValueError(f"labels must be ({self.triangles.n_instances},) uint8, got {labels.shape}")
+        return scale, rotation, labels
 
     def _instance_mask(self, instances) -> np.ndarray | None:
         """``instances`` checked to be (n_instances,) bool, or None."""

@@ -23,6 +23,11 @@
 //     the nearest distance, the one of smallest float64 plane distance, exact ties by face
 //     index (lower instance, then lower triangle; see nearest_face), in ray packets that
 //     name the faces ray-by-ray tracing names (see nearest_faces_packed).
+//   * the first K hits of each ray (docs/spec.md §4.7, the ray-intersection layers): the
+//     nearest hits kept in the filter as the traversal meets them, the traversal stopped
+//     where no farther one can be among them, in ray packets, and written as a view's
+//     layers (engine_nearest, engine_nearest_surfaces); with the frontal query's object
+//     hits taken from the same traversal (engine_frontal_nearest).
 //
 // Rays are traced in fixed blocks, each block's output kept apart and joined in block
 // order: the result does not depend on the thread count.
@@ -1108,6 +1113,661 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
                          closing_out[2], closing_out[3], closing_out[4]);
 }
 
+// ------------------------------------------------------------------ the K nearest hits
+
+// The first K hits of each ray over the whole house, as the merged, sorted hits of the ray
+// have them (docs/spec.md §4.7: the ray-intersection layers), in one traversal per ray
+// and scene that stops once no farther hit can be among them:
+//
+//   * the filter keeps the ray's `capacity` nearest hits so far in a list sorted by
+//     (float64 plane distance, face) -- a ray's hit order, exact ties by the lower
+//     instance, then triangle -- and rejects every hit it keeps, so that the traversal
+//     goes on; hits without a finite plane distance are dropped, as collect drops them;
+//   * once the list is full, a hit whose engine (float32) distance lies beyond the last
+//     kept hit's plane distance + margin cannot be among the nearest (the margin of
+//     collect's cut-off: engine and plane distances of one hit differ by far less), and
+//     neither can anything farther: the filter accepts it, so Embree's tfar shrinks to it
+//     and the traversal skips what lies beyond. A hit that can still be among them is
+//     never accepted, and tfar never drops below a distance one could have;
+//   * the same-instance merge then runs over the list, in order, as _same_instance_repeats
+//     does: a hit is dropped when an earlier hit of the list of its instance lies within
+//     `same_instance` before it. Whether a hit is dropped depends only on the hits before
+//     it, so the list's kept hits are the first kept hits of all the ray's hits. Where
+//     merged hits leave fewer than K of a full list, the ray is traced again with a list
+//     twice as long, until K are kept or the list holds every hit of the ray.
+//
+// The capacity starts at K + spare: a few same-instance repeats (a ray through an edge
+// two triangles share, coincident faces) fit without tracing the ray again.
+//
+// Rays are traced in packets of the engine's width (a view's rays are coherent: a packet
+// walks the BVH once for all its rays), each lane a ray with its own list. A packet's
+// float32 arithmetic may differ from ray-by-ray tracing's in the last bits, which matters
+// only next to a triangle's edge (where one mode may hit and the other miss, see
+// nearest_faces_packed): a lane that kept a hit next to an edge (near_edge), or kept none,
+// is traced again ray by ray, so every ray gets the hits ray-by-ray tracing (collect) gets.
+struct NearestLane {
+    const double *o, *d;
+    HitRecord* list;  // sorted by (t, face)
+    int count;
+    float beyond;  // with the list full: hits at an engine distance above this cannot enter it (inf before)
+    bool edge;     // packets: a hit next to its triangle's edge entered the list
+};
+
+struct NearestCollector {
+    SFContextBase base;  // first: Embree hands the callback a pointer to it
+    const EngineObject* engine;
+    const int64_t* face_base;
+    const double* plane;
+    double margin;
+    int capacity;
+    bool packet;  // watch for hits next to an edge
+    NearestLane lane[16];  // by ray id
+};
+
+inline bool hit_before(const HitRecord& a, const HitRecord& b) {
+    return a.t < b.t || (a.t == b.t && a.face < b.face);
+}
+
+// x rounded up to float32.
+inline float float_at_or_above(double x) {
+    float f = static_cast<float>(x);
+    if (static_cast<double>(f) < x) f = std::nextafter(f, std::numeric_limits<float>::infinity());
+    return f;
+}
+
+void nearest_filter(const RTCFilterFunctionNArguments* args) {
+    NearestCollector* c = reinterpret_cast<NearestCollector*>(args->context);
+    for (unsigned int i = 0; i < args->N; ++i) {
+        if (args->valid[i] != -1) continue;
+        NearestLane& lane = c->lane[RTCRayN_id(args->ray, args->N, i)];
+        const float t32 = RTCRayN_tfar(args->ray, args->N, i);
+        const int64_t face = c->face_base[RTCHitN_geomID(args->hit, args->N, i)] + RTCHitN_primID(args->hit, args->N, i);
+        double cos;
+        const double t = plane_distance(c->plane + 4 * face, lane.o, lane.d, cos);
+        const HitRecord hit{t, cos, face};
+        if (std::isfinite(t) && (lane.count < c->capacity || hit_before(hit, lane.list[c->capacity - 1]))) {
+            int j = lane.count < c->capacity ? lane.count++ : c->capacity - 1;
+            for (; j > 0 && hit_before(hit, lane.list[j - 1]); --j) lane.list[j] = lane.list[j - 1];
+            lane.list[j] = hit;
+            if (lane.count == c->capacity) lane.beyond = float_at_or_above(lane.list[c->capacity - 1].t + c->margin);
+            if (c->packet && near_edge(c->engine, face, t32, RTCHitN_u(args->hit, args->N, i),
+                                       RTCHitN_v(args->hit, args->N, i)))
+                lane.edge = true;
+        } else if (t32 > lane.beyond) {
+            continue;  // accepted: nothing at or beyond it is needed
+        }
+        args->valid[i] = 0;
+    }
+}
+
+void init_nearest(NearestCollector& c, const EngineObject* e, int capacity, double margin, bool packet) {
+    c.engine = e;
+    c.plane = e->planes->data();
+    c.margin = margin;
+    c.capacity = capacity;
+    c.packet = packet;
+}
+
+void start_lane(NearestLane& lane, const double* o, const double* d, HitRecord* list) {
+    lane.o = o, lane.d = d, lane.list = list;
+    lane.count = 0;
+    lane.beyond = std::numeric_limits<float>::infinity();
+    lane.edge = false;
+}
+
+// The tfar a lane's ray starts a scene with: past where its list cuts off.
+inline float lane_tfar(const NearestLane& lane) {
+    constexpr float inf = std::numeric_limits<float>::infinity();
+    return lane.beyond < inf ? std::nextafter(lane.beyond, inf) : inf;
+}
+
+// The first k kept hits of a lane's list (same-instance repeats dropped) into out; their count.
+int merged_hits(const EngineObject* e, const NearestLane& lane, int k, double same_instance, HitRecord* out) {
+    const int32_t* face_instance = e->instance->data();
+    int kept = 0;
+    for (int j = 0; j < lane.count && kept < k; ++j) {
+        bool repeat = false;
+        const int32_t inst = face_instance[lane.list[j].face];
+        for (int s = j - 1; s >= 0 && lane.list[j].t - lane.list[s].t <= same_instance; --s)
+            if (face_instance[lane.list[s].face] == inst) {
+                repeat = true;
+                break;
+            }
+        if (!repeat) out[kept++] = lane.list[j];
+    }
+    return kept;
+}
+
+// The raw hits a ray's first k merged hits were taken from: the `count` nearest of its hits
+// (unmerged, sorted), every hit of the ray where `full` is false.
+struct RawHits {
+    const HitRecord* list;
+    int count;
+    bool full;
+};
+
+// One ray's first k hits (merged, sorted) into out[0..kept), traced ray by ray over the
+// scenes; returns kept (fewer than k only where the ray has fewer hits). `list` is the
+// caller's scratch, which holds the raw hits after (`raw`); `retraced` counts the times the
+// ray was traced again with a longer list.
+int nearest_of_ray(const EngineObject* e, const std::vector<const Scene*>& scenes, const double* o, const double* d,
+                   int k, int spare, double margin, double same_instance, std::vector<HitRecord>& list,
+                   HitRecord* out, int64_t& retraced, RawHits& raw) {
+    for (int capacity = k + spare;; capacity *= 2, ++retraced) {
+        if (static_cast<int>(list.size()) < capacity) list.resize(capacity);
+        NearestCollector c;
+        init_nearest(c, e, capacity, margin, false);
+        NearestLane& lane = c.lane[0];
+        start_lane(lane, o, d, list.data());
+        for (const Scene* s : scenes) {
+            c.face_base = s->face_base.data();
+            RTCRayHit rh;
+            set_ray(rh, e, o, d, lane_tfar(lane));  // ray id 0: lane 0
+#if RTC_VERSION_MAJOR >= 4
+            rtcInitRayQueryContext(&c.base);
+            RTCIntersectArguments args;
+            rtcInitIntersectArguments(&args);
+            args.context = &c.base;
+            args.filter = nearest_filter;
+            args.flags = static_cast<RTCRayQueryFlags>(args.flags | RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER);
+            rtcIntersect1(s->scene, &rh, &args);
+#else
+            rtcInitIntersectContext(&c.base);
+            c.base.filter = nearest_filter;
+            rtcIntersect1(s->scene, &c.base, &rh);
+#endif
+        }
+        const int kept = merged_hits(e, lane, k, same_instance, out);
+        raw = {list.data(), lane.count, lane.count == capacity};
+        if (kept == k || !raw.full) return kept;
+    }
+}
+
+// Where the nearest-hit queries write ray r's hits: layer j at j * n + r (normals: component
+// a at (3 * j + a) * n + r). Either the hits themselves (t, face) or, for engine_nearest_surfaces,
+// what a view stores of them: depth t * depth_scale, the face's winding normal rotated by R
+// (row a of R times it, summed x, y, z in float64), the face's instance and its label, each
+// rounded as sceneforge.raytrace._nearest_surfaces computes it; front_facing either way.
+struct NearestOut {
+    int64_t n;
+    int k;
+    bool* front;
+    // the hits: t f8 and face i8 (null for surfaces)
+    double* t = nullptr;
+    int64_t* face = nullptr;
+    // the surfaces: inputs, then outputs
+    const EngineObject* engine = nullptr;
+    const double* scale = nullptr;
+    bool scale_shared = false;
+    const double* R = nullptr;
+    const uint8_t* labels = nullptr;
+    float* depth = nullptr;
+    float* normal = nullptr;
+    int32_t* instance = nullptr;
+    uint8_t* label = nullptr;
+
+    // Rays lo..hi-1 past their last hit, every layer (their hits are written over it).
+    void blank(int64_t lo, int64_t hi) const {
+        const float nan = std::numeric_limits<float>::quiet_NaN();
+        for (int j = 0; j < k; ++j) {
+            const int64_t a = j * n + lo, b = j * n + hi;
+            std::fill(front + a, front + b, false);
+            if (t) {
+                std::fill(t + a, t + b, std::numeric_limits<double>::quiet_NaN());
+                std::fill(face + a, face + b, int64_t{-1});
+                continue;
+            }
+            std::fill(depth + a, depth + b, nan);
+            std::fill(instance + a, instance + b, int32_t{-1});
+            std::fill(label + a, label + b, uint8_t{0});
+            for (int c = 0; c < 3; ++c) std::fill(normal + (3 * j + c) * n + lo, normal + (3 * j + c) * n + hi, nan);
+        }
+    }
+
+    // Ray r's hits (after blank: the layers past them are written already).
+    void write(int64_t r, const HitRecord* hits, int kept) const {
+        for (int j = 0; j < kept; ++j) {
+            const int64_t i = j * n + r;
+            front[i] = hits[j].cos < 0;
+            if (t) {
+                t[i] = hits[j].t, face[i] = hits[j].face;
+                continue;
+            }
+            float* normal_i = normal + 3 * j * n + r;  // x, y, z n apart
+            const int64_t f = hits[j].face;
+            depth[i] = static_cast<float>(hits[j].t * scale[scale_shared ? 0 : r]);
+            const int32_t inst = (*engine->instance)[f];
+            instance[i] = inst, label[i] = labels[inst];
+            const double* q = engine->planes->data() + 4 * f;  // the unit normal x, y, z, then the offset
+            for (int a = 0; a < 3; ++a)
+                normal_i[a * n] = static_cast<float>(R[3 * a] * q[0] + R[3 * a + 1] * q[1] + R[3 * a + 2] * q[2]);
+        }
+    }
+};
+
+// The nearest hits of rays lo..hi-1, P at a time (see above), written to `out`; each ray's
+// raw hits also handed to on_ray(r, RawHits).
+template <int P, class F>
+void nearest_packed(const EngineObject* e, const std::vector<const Scene*>& scenes, const RayRows& rays, int64_t lo,
+                    int64_t hi, int spare, double margin, double same_instance, const NearestOut& out,
+                    int64_t& retraced, int64_t& single_rays, F&& on_ray) {
+    const int k = out.k, capacity = k + spare;
+    std::vector<HitRecord> lists(static_cast<size_t>(P) * capacity), single, hits(k);
+    for (int64_t r0 = lo; r0 < hi; r0 += P) {
+        const int lanes = static_cast<int>(std::min<int64_t>(P, hi - r0));
+        auto ray = [&](int j) { return r0 + (j < lanes ? j : 0); };  // idle lanes repeat the first (not traced)
+        NearestCollector c;
+        init_nearest(c, e, capacity, margin, true);
+        alignas(64) int valid[P];
+        for (int j = 0; j < P; ++j) {
+            valid[j] = j < lanes ? -1 : 0;
+            start_lane(c.lane[j], rays.origin(ray(j)), rays.direction(ray(j)), lists.data() + j * capacity);
+        }
+        for (const Scene* s : scenes) {
+            c.face_base = s->face_base.data();
+            typename Packet<P>::RayHit rh;
+            for (int j = 0; j < P; ++j) set_lane(rh, j, e, c.lane[j].o, c.lane[j].d, 0.0f, lane_tfar(c.lane[j]));
+            Packet<P>::intersect(valid, s->scene, &rh, &c.base, nearest_filter);
+        }
+        for (int j = 0; j < lanes; ++j) {
+            const NearestLane& lane = c.lane[j];
+            int kept = -1;
+            RawHits raw{lane.list, lane.count, lane.count == capacity};
+            if (!lane.edge && lane.count > 0) {
+                kept = merged_hits(e, lane, k, same_instance, hits.data());
+                if (kept < k && raw.full) kept = -1, ++retraced;
+            }
+            if (kept < 0) {  // next to an edge, no hit (an edge-on ray may hit ray by ray), or repeats
+                kept = nearest_of_ray(e, scenes, lane.o, lane.d, k, spare, margin, same_instance, single,
+                                      hits.data(), retraced, raw);
+                ++single_rays;
+            }
+            out.write(r0 + j, hits.data(), kept);
+            on_ray(r0 + j, raw);
+        }
+    }
+}
+
+// The nearest hits of rays lo..hi-1 into `out` (blank first), in packets of the engine's
+// width; on_ray(r, RawHits) as for nearest_packed. Adds to `retraced` and `single_rays`.
+template <class F>
+void nearest_block(const EngineObject* e, const std::vector<const Scene*>& scenes, const RayRows& rays, int64_t lo,
+                   int64_t hi, int spare, double margin, double same_instance, const NearestOut& out,
+                   int64_t& retraced, int64_t& single_rays, F&& on_ray) {
+    out.blank(lo, hi);
+    switch (e->packet) {
+        case 16:
+            return nearest_packed<16>(e, scenes, rays, lo, hi, spare, margin, same_instance, out, retraced,
+                                      single_rays, on_ray);
+        case 8:
+            return nearest_packed<8>(e, scenes, rays, lo, hi, spare, margin, same_instance, out, retraced,
+                                     single_rays, on_ray);
+        case 4:
+            return nearest_packed<4>(e, scenes, rays, lo, hi, spare, margin, same_instance, out, retraced,
+                                     single_rays, on_ray);
+        default: {
+            std::vector<HitRecord> list, hits(out.k);
+            for (int64_t r = lo; r < hi; ++r) {
+                RawHits raw;
+                out.write(r, hits.data(),
+                          nearest_of_ray(e, scenes, rays.origin(r), rays.direction(r), out.k, spare, margin,
+                                         same_instance, list, hits.data(), retraced, raw));
+                on_ray(r, raw);
+            }
+        }
+    }
+}
+
+// Every ray's nearest hits into `out`, in blocks on the engine's threads; returns (longer,
+// single): the traversals again with a longer list (same-instance repeats that used up the
+// spare) and the rays of packets traced again ray by ray.
+PyObject* run_nearest(EngineObject* self, const std::vector<const Scene*>& scenes, const RayRows& rays, int spare,
+                      double margin, double same_instance, const NearestOut& out) {
+    std::atomic<int64_t> again{0}, singles{0};
+    const int64_t n = rays.n;
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks((n + kBlock - 1) / kBlock, self->threads, [&](int64_t b) {
+        int64_t retraced = 0, single_rays = 0;
+        nearest_block(self, scenes, rays, b * kBlock, std::min<int64_t>(n, (b + 1) * kBlock), spare, margin,
+                      same_instance, out, retraced, single_rays, [](int64_t, const RawHits&) {});
+        again += retraced, singles += single_rays;
+    });
+    Py_END_ALLOW_THREADS
+    return Py_BuildValue("(LL)", static_cast<long long>(again.load()), static_cast<long long>(singles.load()));
+}
+
+// A writable C-contiguous buffer of exactly `bytes` bytes.
+bool get_out_buffer(PyObject* obj, Buffer& b, Py_ssize_t bytes, const char* name) {
+    if (PyObject_GetBuffer(obj, &b.view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) != 0) return false;
+    b.held = true;
+    if (b.view.len != bytes) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd bytes, got %zd", name, bytes, b.view.len);
+        return false;
+    }
+    return true;
+}
+
+// The arguments both nearest-hit queries start with: scene_ids, n, origins, directions, k,
+// spare, margin, same_instance.
+struct NearestArgs {
+    PyObject *ids, *origins, *directions;
+    Py_ssize_t n;
+    int k, spare;
+    double margin, same_instance;
+};
+
+bool check_nearest(EngineObject* self, const NearestArgs& a, std::vector<const Scene*>& scenes, Buffer& bo,
+                   Buffer& bd, RayRows& rays) {
+    if (a.k < 1 || a.spare < 0) {
+        PyErr_Format(PyExc_ValueError, "nearest: k must be >= 1 and spare >= 0, got %d and %d", a.k, a.spare);
+        return false;
+    }
+    return get_scene_ids(self, a.ids, scenes) && get_rays(a.origins, a.directions, a.n, bo, bd, rays);
+}
+
+// nearest(scene_ids, n, origins, directions, k, spare, margin, same_instance, t (k,n) f8 out,
+//         face (k,n) i8 out, front_facing (k,n) bool out) -> (longer, single)
+//   Layer j of ray r (index j * n + r): its j-th hit of the merged, sorted hits over the
+//   scenes (as collect's), t NaN, face -1 and front_facing false past its last hit (see
+//   run_nearest for the counts returned).
+PyObject* engine_nearest(EngineObject* self, PyObject* args) {
+    NearestArgs a;
+    PyObject *t_o, *face_o, *front_o;
+    if (!PyArg_ParseTuple(args, "OnOOiiddOOO", &a.ids, &a.n, &a.origins, &a.directions, &a.k, &a.spare, &a.margin,
+                          &a.same_instance, &t_o, &face_o, &front_o))
+        return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bo, bd, bt, bf, bfr;
+    RayRows rays;
+    const Py_ssize_t items = static_cast<Py_ssize_t>(a.k) * a.n;
+    if (!check_nearest(self, a, scenes, bo, bd, rays) || !get_out_buffer(t_o, bt, 8 * items, "t out") ||
+        !get_out_buffer(face_o, bf, 8 * items, "face out") || !get_out_buffer(front_o, bfr, items, "front_facing out"))
+        return nullptr;
+    NearestOut out{a.n, a.k, static_cast<bool*>(bfr.view.buf)};
+    out.t = static_cast<double*>(bt.view.buf);
+    out.face = static_cast<int64_t*>(bf.view.buf);
+    return run_nearest(self, scenes, rays, a.spare, a.margin, a.same_instance, out);
+}
+
+// nearest_surfaces(scene_ids, n, origins, directions, k, spare, margin, same_instance,
+//                  depth_scale (n,) or (1,) f8, rotation (3,3) f8, labels (n_instances,) u1,
+//                  depth (k,n) f4 out, normal (k,3,n) f4 out, instance (k,n) i4 out,
+//                  label (k,n) u1 out, front_facing (k,n) bool out) -> (longer, single)
+//   engine_nearest's hits written as sceneforge.raytrace._nearest_surfaces writes them
+//   (NearestOut): NaN, NaN, -1, 0 and false past a ray's last hit.
+PyObject* engine_nearest_surfaces(EngineObject* self, PyObject* args) {
+    NearestArgs a;
+    PyObject *scale_o, *rot_o, *labels_o, *depth_o, *normal_o, *inst_o, *label_o, *front_o;
+    if (!PyArg_ParseTuple(args, "OnOOiiddOOOOOOOO", &a.ids, &a.n, &a.origins, &a.directions, &a.k, &a.spare,
+                          &a.margin, &a.same_instance, &scale_o, &rot_o, &labels_o, &depth_o, &normal_o, &inst_o,
+                          &label_o, &front_o))
+        return nullptr;
+    std::vector<const Scene*> scenes;
+    Buffer bo, bd, bs, br, bl, bdp, bn, bi, blb, bfr;
+    RayRows rays;
+    const Py_ssize_t items = static_cast<Py_ssize_t>(a.k) * a.n;
+    const Py_ssize_t n_instances = static_cast<Py_ssize_t>(self->first_face->size()) - 1;
+    if (!check_nearest(self, a, scenes, bo, bd, rays) || !get_buffer(scale_o, bs, sizeof(double), -1, "depth_scale") ||
+        !get_buffer(rot_o, br, sizeof(double), 9, "rotation") ||
+        !get_buffer(labels_o, bl, 1, n_instances, "labels") || !get_out_buffer(depth_o, bdp, 4 * items, "depth out") ||
+        !get_out_buffer(normal_o, bn, 12 * items, "normal out") ||
+        !get_out_buffer(inst_o, bi, 4 * items, "instance out") || !get_out_buffer(label_o, blb, items, "label out") ||
+        !get_out_buffer(front_o, bfr, items, "front_facing out"))
+        return nullptr;
+    const Py_ssize_t n_scale = bs.view.len / static_cast<Py_ssize_t>(sizeof(double));
+    if (n_scale != 1 && n_scale != a.n) {
+        PyErr_Format(PyExc_ValueError, "depth_scale: %zd values for %zd rays", n_scale, a.n);
+        return nullptr;
+    }
+    NearestOut out{a.n, a.k, static_cast<bool*>(bfr.view.buf)};
+    out.engine = self;
+    out.scale = static_cast<const double*>(bs.view.buf);
+    out.scale_shared = n_scale == 1;
+    out.R = static_cast<const double*>(br.view.buf);
+    out.labels = static_cast<const uint8_t*>(bl.view.buf);
+    out.depth = static_cast<float*>(bdp.view.buf);
+    out.normal = static_cast<float*>(bn.view.buf);
+    out.instance = static_cast<int32_t*>(bi.view.buf);
+    out.label = static_cast<uint8_t*>(blb.view.buf);
+    return run_nearest(self, scenes, rays, a.spare, a.margin, a.same_instance, out);
+}
+
+// The CSR arrays of Hits from per-block raw hits (every block's hits grouped by ray, in ray
+// order, with their plane distances; t_min and t_max over them): engine_collect's pass 2 and
+// output, operation for operation -- each ray's hits ordered by the batch's float key, exact
+// key ties by face, same-instance repeats dropped -- so that the same raw hits give the same
+// bytes. Returns (offsets, t, instance, triangle, front_facing) bytearrays, or null (error set).
+PyObject* hits_result(const EngineObject* self, std::vector<BlockHits>& blocks, int64_t n_blocks, int64_t n,
+                      double tol) {
+    const double inf = std::numeric_limits<double>::infinity();
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    double t0 = inf, t1 = -inf;
+    for (int64_t b = 0; b < n_blocks; ++b) t0 = std::min(t0, blocks[b].t_min), t1 = std::max(t1, blocks[b].t_max);
+    const double span = (t1 - t0) + 1.0;
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
+        BlockHits& blk = blocks[b];
+        std::vector<std::pair<double, int64_t>> keyed;  // (key, position in the ray's hits)
+        std::vector<HitRecord> sorted;
+        size_t h = 0, written = 0;  // kept hits go back into blk.hits, never past the ray being read
+        for (size_t j = 0; j < blk.counts.size(); ++j) {
+            const int64_t count = blk.counts[j];
+            const double r = static_cast<double>(b * kBlock + static_cast<int64_t>(j));
+            HitRecord* hits = blk.hits.data() + h;
+            h += count;
+            if (count == 0) continue;
+            if (count == 1) {
+                blk.hits[written++] = hits[0];
+                continue;
+            }
+            keyed.resize(count);
+            for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
+            auto before = [&](const std::pair<double, int64_t>& x, const std::pair<double, int64_t>& y) {
+                if (x.first != y.first) return x.first < y.first;
+                return hits[x.second].face < hits[y.second].face;
+            };
+            if (count <= 24) {
+                for (int64_t k = 1; k < count; ++k) {
+                    const auto item = keyed[k];
+                    int64_t i = k;
+                    for (; i > 0 && before(item, keyed[i - 1]); --i) keyed[i] = keyed[i - 1];
+                    keyed[i] = item;
+                }
+            } else {
+                std::sort(keyed.begin(), keyed.end(), before);
+            }
+            sorted.resize(count);
+            for (int64_t k = 0; k < count; ++k) sorted[k] = hits[keyed[k].second];
+            int64_t n_kept = 0;
+            for (int64_t k = 0; k < count; ++k) {
+                bool repeat = false;
+                const int32_t inst = face_instance[sorted[k].face];
+                for (int64_t s = k - 1; s >= 0 && sorted[k].t - sorted[s].t <= tol; --s)
+                    if (face_instance[sorted[s].face] == inst) {
+                        repeat = true;
+                        break;
+                    }
+                if (!repeat) blk.hits[written++] = sorted[k], ++n_kept;
+            }
+            blk.counts[j] = n_kept;
+        }
+        blk.hits.resize(written);
+    });
+    Py_END_ALLOW_THREADS
+
+    int64_t total = 0;
+    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
+    PyObject* out[5] = {PyByteArray_FromStringAndSize(nullptr, (n + 1) * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, total * sizeof(double)),
+                        PyByteArray_FromStringAndSize(nullptr, total * sizeof(int32_t)),
+                        PyByteArray_FromStringAndSize(nullptr, total * sizeof(int64_t)),
+                        PyByteArray_FromStringAndSize(nullptr, total)};
+    if (!out[0] || !out[1] || !out[2] || !out[3] || !out[4]) {
+        for (PyObject* o : out) Py_XDECREF(o);
+        return nullptr;
+    }
+    int64_t* offsets = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[0]));
+    double* t = reinterpret_cast<double*>(PyByteArray_AS_STRING(out[1]));
+    int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(out[2]));
+    int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(out[3]));
+    bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(out[4]));
+    int64_t k = 0;
+    offsets[0] = 0;
+    for (int64_t b = 0; b < n_blocks; ++b) {
+        const auto& blk = blocks[b];
+        for (size_t j = 0; j < blk.counts.size(); ++j) {
+            const int64_t r = b * kBlock + static_cast<int64_t>(j);
+            offsets[r + 1] = offsets[r] + blk.counts[j];
+        }
+        for (const auto& hit : blk.hits) {
+            const int32_t inst = face_instance[hit.face];
+            t[k] = hit.t;
+            instance[k] = inst;
+            triangle[k] = hit.face - first_face[inst];
+            front[k] = hit.cos < 0;
+            ++k;
+        }
+    }
+    return Py_BuildValue("(NNNNN)", out[0], out[1], out[2], out[3], out[4]);
+}
+
+// frontal_nearest(object_ids, closing_ids, objects (n_instances,) bool, n, origins, directions,
+//                 margin, same_instance, slack, k, spare, depth_scale, rotation, labels,
+//                 depth out, normal out, instance out, label out, front_facing out)
+//   -> (offsets, t, instance, triangle, front_facing, closing face, t, instance, triangle,
+//       front_facing, (longer, single))
+//
+// The frontal query and the ray-intersection layers of a view from one traversal per ray:
+// the first ten results are what collect(object_ids, ..., closing_ids, 0, slack) returns,
+// bit for bit (each ray's closing hit, found first in packets by closing_hits, and its object
+// hits up to it + slack as Hits), and the depth ... front_facing outputs are what
+// nearest_surfaces writes over the object and closing scenes together. A ray's object hits
+// up to its cut-off are among the nearest hits the traversal keeps whenever the list is not
+// full or ends beyond the cut-off: they are taken from there (the hits of the members of
+// `objects`, plane distance at most the cut-off: the hits collect keeps); for the other rays
+// (more surfaces before the closing hit than the list holds) the objects are traced again as
+// collect traces them. Both go through collect's pass 2 (hits_result).
+PyObject* engine_frontal_nearest(EngineObject* self, PyObject* args) {
+    NearestArgs a;
+    PyObject *closing_obj, *objects_obj, *scale_o, *rot_o, *labels_o, *depth_o, *normal_o, *inst_o, *label_o, *front_o;
+    double slack;
+    if (!PyArg_ParseTuple(args, "OOOnOOdddiiOOOOOOOO", &a.ids, &closing_obj, &objects_obj, &a.n, &a.origins,
+                          &a.directions, &a.margin, &a.same_instance, &slack, &a.k, &a.spare, &scale_o, &rot_o,
+                          &labels_o, &depth_o, &normal_o, &inst_o, &label_o, &front_o))
+        return nullptr;
+    std::vector<const Scene*> object_scenes, closing_scenes;
+    Buffer bo, bd, bm, bs, br, bl, bdp, bn, bi, blb, bfr;
+    RayRows rays;
+    const Py_ssize_t items = static_cast<Py_ssize_t>(a.k) * a.n;
+    const Py_ssize_t n_instances = static_cast<Py_ssize_t>(self->first_face->size()) - 1;
+    if (!check_nearest(self, a, object_scenes, bo, bd, rays) || !get_scene_ids(self, closing_obj, closing_scenes) ||
+        !get_buffer(objects_obj, bm, 1, n_instances, "objects") ||
+        !get_buffer(scale_o, bs, sizeof(double), -1, "depth_scale") ||
+        !get_buffer(rot_o, br, sizeof(double), 9, "rotation") ||
+        !get_buffer(labels_o, bl, 1, n_instances, "labels") || !get_out_buffer(depth_o, bdp, 4 * items, "depth out") ||
+        !get_out_buffer(normal_o, bn, 12 * items, "normal out") ||
+        !get_out_buffer(inst_o, bi, 4 * items, "instance out") || !get_out_buffer(label_o, blb, items, "label out") ||
+        !get_out_buffer(front_o, bfr, items, "front_facing out"))
+        return nullptr;
+    const Py_ssize_t n_scale = bs.view.len / static_cast<Py_ssize_t>(sizeof(double));
+    if (n_scale != 1 && n_scale != a.n) {
+        PyErr_Format(PyExc_ValueError, "depth_scale: %zd values for %zd rays", n_scale, a.n);
+        return nullptr;
+    }
+    const int64_t n = a.n;
+    NearestOut out{n, a.k, static_cast<bool*>(bfr.view.buf)};
+    out.engine = self;
+    out.scale = static_cast<const double*>(bs.view.buf);
+    out.scale_shared = n_scale == 1;
+    out.R = static_cast<const double*>(br.view.buf);
+    out.labels = static_cast<const uint8_t*>(bl.view.buf);
+    out.depth = static_cast<float*>(bdp.view.buf);
+    out.normal = static_cast<float*>(bn.view.buf);
+    out.instance = static_cast<int32_t*>(bi.view.buf);
+    out.label = static_cast<uint8_t*>(blb.view.buf);
+    std::vector<const Scene*> scenes(object_scenes);
+    scenes.insert(scenes.end(), closing_scenes.begin(), closing_scenes.end());
+    const bool* is_object = static_cast<const bool*>(bm.view.buf);
+
+    PyObject* closing_out[5];
+    const size_t sizes[5] = {sizeof(int64_t), sizeof(double), sizeof(int32_t), sizeof(int64_t), 1};
+    for (int c = 0; c < 5; ++c) closing_out[c] = PyByteArray_FromStringAndSize(nullptr, n * sizes[c]);
+    if (!closing_out[0] || !closing_out[1] || !closing_out[2] || !closing_out[3] || !closing_out[4]) {
+        for (PyObject* o : closing_out) Py_XDECREF(o);
+        return nullptr;
+    }
+    int64_t* closing_face = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(closing_out[0]));
+    double* closing_t = reinterpret_cast<double*>(PyByteArray_AS_STRING(closing_out[1]));
+    int32_t* closing_inst = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(closing_out[2]));
+    int64_t* closing_tri = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(closing_out[3]));
+    bool* closing_front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(closing_out[4]));
+    const int32_t* face_instance = self->instance->data();
+    const int64_t* first_face = self->first_face->data();
+    const double inf = std::numeric_limits<double>::infinity();
+    const int64_t n_blocks = (n + kBlock - 1) / kBlock;
+    std::vector<BlockHits> blocks(n_blocks);
+    std::atomic<int64_t> again{0}, singles{0};
+
+    Py_BEGIN_ALLOW_THREADS
+    parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
+        const int64_t lo = b * kBlock, hi = std::min<int64_t>(n, lo + kBlock);
+        BlockHits& blk = blocks[b];
+        blk.counts.assign(hi - lo, 0);
+        double cos[kBlock];
+        closing_hits(self, closing_scenes, rays, lo, hi, 0.0, closing_face, closing_t, cos);
+        for (int64_t r = lo; r < hi; ++r) {
+            const int64_t f = closing_face[r];
+            closing_inst[r] = f >= 0 ? face_instance[f] : -1;
+            closing_tri[r] = f >= 0 ? f - first_face[closing_inst[r]] : -1;
+            closing_front[r] = cos[r - lo] < 0;
+        }
+        Collector c;  // for rays whose object hits the nearest hits do not hold
+        init_collector(c, self);
+        c.raw = false;
+        c.out = &blk.hits;
+        int64_t retraced = 0, single_rays = 0;
+        nearest_block(self, scenes, rays, lo, hi, a.spare, a.margin, a.same_instance, out, retraced, single_rays,
+                      [&](int64_t r, const RawHits& raw) {
+            const double cutoff = std::isnan(closing_t[r]) ? inf : closing_t[r] + slack;
+            const size_t before = blk.hits.size();
+            if (!raw.full || raw.list[raw.count - 1].t > cutoff) {
+                for (int j = 0; j < raw.count && raw.list[j].t <= cutoff; ++j)
+                    if (is_object[face_instance[raw.list[j].face]]) blk.hits.push_back(raw.list[j]);
+            } else {  // as engine_collect traces a ray's objects
+                c.o = rays.origin(r), c.d = rays.direction(r);
+                c.cutoff = cutoff;
+                c.limit32 = c.cutoff + a.margin;
+                float tfar = static_cast<float>(c.limit32);
+                if (static_cast<double>(tfar) < c.limit32)
+                    tfar = std::nextafter(tfar, std::numeric_limits<float>::infinity());
+                for (const Scene* s : object_scenes) {
+                    RTCRayHit rh;
+                    set_ray(rh, self, c.o, c.d, tfar);
+                    intersect_collecting(s, c, rh);
+                }
+                plane_distances(c, blk.hits, before);
+            }
+            blk.counts[r - lo] = static_cast<int64_t>(blk.hits.size() - before);
+            for (size_t h = before; h < blk.hits.size(); ++h) {
+                blk.t_min = std::min(blk.t_min, blk.hits[h].t);
+                blk.t_max = std::max(blk.t_max, blk.hits[h].t);
+            }
+        });
+        again += retraced, singles += single_rays;
+    });
+    Py_END_ALLOW_THREADS
+
+    PyObject* hits = hits_result(self, blocks, n_blocks, n, a.same_instance);
+    if (!hits) {
+        for (PyObject* o : closing_out) Py_XDECREF(o);
+        return nullptr;
+    }
+    PyObject* counts = Py_BuildValue("(LL)", static_cast<long long>(again.load()), static_cast<long long>(singles.load()));
+    return Py_BuildValue("(NNNNNNN)", hits, closing_out[0], closing_out[1], closing_out[2], closing_out[3],
+                         closing_out[4], counts);
+}
+
 // ------------------------------------------------------------------ closest distance
 
 struct ClosestQuery {
@@ -1219,21 +1879,24 @@ PyObject* engine_closest(EngineObject* self, PyObject* args) {
 
 // layer_rules(offsets (n+1,) i8, t (k,) f8, instance (k,) i4, closing_t (n,) f8,
 //             closing_instance (n,) i4, depth_scale (n,) or (1,) f8, category (c,) u1,
-//             same_instance f8, depth (5,n) f4 out, category (3,n) u1 out, instance (2,n) i4 out)
+//             same_instance f8, depth (5,n) f4 out, category (3,n) u1 out, instance (2,n) i4 out
+//             [, hit (4,n) i8 out])
 //
 // The layer rules of docs/spec.md §4.2-§4.3 on each ray's object hits (sorted, none beyond the closing hit + slack),
 // what sceneforge.layers._apply_rules does with whole-array operations, here in one pass
 // over the hits to find the visible instances (each ray's first object hit) and one more
 // for the layers. Every value is computed as there: depths are the float64 product
 // t * depth_scale rounded to float32, D3's test is t >= d2 - same_instance in float64. The
-// output arrays come filled with their "none" values (NaN, 0, -1).
+// output arrays come filled with their "none" values (NaN, 0, -1). With ``hit``, also the
+// index into the object hits of the hit that fills each of D1..D4 (the labels of every layer).
 PyObject* layer_rules(PyObject*, PyObject* args) {
     PyObject *offsets_o, *t_o, *inst_o, *ct_o, *ci_o, *scale_o, *cat_o, *depth_o, *ocat_o, *oinst_o;
+    PyObject* ohit_o = Py_None;
     double same_instance;
-    if (!PyArg_ParseTuple(args, "OOOOOOOdOOO", &offsets_o, &t_o, &inst_o, &ct_o, &ci_o, &scale_o, &cat_o,
-                          &same_instance, &depth_o, &ocat_o, &oinst_o))
+    if (!PyArg_ParseTuple(args, "OOOOOOOdOOO|O", &offsets_o, &t_o, &inst_o, &ct_o, &ci_o, &scale_o, &cat_o,
+                          &same_instance, &depth_o, &ocat_o, &oinst_o, &ohit_o))
         return nullptr;
-    Buffer bo, bt, bi, bct, bci, bs, bc, bd, bocat, boinst;
+    Buffer bo, bt, bi, bct, bci, bs, bc, bd, bocat, boinst, bohit;
     if (!get_buffer(offsets_o, bo, sizeof(int64_t), -1, "offsets")) return nullptr;
     const Py_ssize_t n = bo.view.len / static_cast<Py_ssize_t>(sizeof(int64_t)) - 1;
     if (n < 0) {
@@ -1262,6 +1925,16 @@ PyObject* layer_rules(PyObject*, PyObject* args) {
             PyErr_Format(PyExc_ValueError, "%s: expected %zd bytes, got %zd", name, items, b->view.len);
             return nullptr;
         }
+    }
+    int64_t* out_hit = nullptr;
+    if (ohit_o != Py_None) {
+        if (PyObject_GetBuffer(ohit_o, &bohit.view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE) != 0) return nullptr;
+        bohit.held = true;
+        if (bohit.view.len != 4 * n * 8) {
+            PyErr_Format(PyExc_ValueError, "hit out: expected %zd bytes, got %zd", 4 * n * 8, bohit.view.len);
+            return nullptr;
+        }
+        out_hit = static_cast<int64_t*>(bohit.view.buf);
     }
     const double* t = static_cast<const double*>(bt.view.buf);
     const int32_t* inst = static_cast<const int32_t*>(bi.view.buf);
@@ -1302,6 +1975,7 @@ PyObject* layer_rules(PyObject*, PyObject* args) {
         D[1][r] = static_cast<float>(t[last] * s);
         out_cat[r] = category[i1];
         out_inst[r] = i1;
+        if (out_hit) out_hit[r] = lo, out_hit[n + r] = last;
         // D3: the first hit of another visible instance at or after D2; D4: its instance's last hit
         const double from = t[last] - same_instance;
         int64_t third = -1;
@@ -1319,6 +1993,7 @@ PyObject* layer_rules(PyObject*, PyObject* args) {
         D[3][r] = static_cast<float>(t[last] * s);
         out_cat[n + r] = category[i3];
         out_inst[n + r] = i3;
+        if (out_hit) out_hit[2 * n + r] = third, out_hit[3 * n + r] = last;
     }
     Py_END_ALLOW_THREADS
     Py_RETURN_NONE;
@@ -1901,7 +2576,7 @@ PyObject* weld_faces(PyObject*, PyObject* args) {
 PyMethodDef module_methods[] = {
     {"layer_rules", layer_rules, METH_VARARGS,
      "layer_rules(offsets, t, instance, closing_t, closing_instance, depth_scale, category, same_instance, "
-     "depth_out, category_out, instance_out): docs/spec.md §4.2-§4.3, as sceneforge.layers._apply_rules"},
+     "depth_out, category_out, instance_out[, hit_out]): docs/spec.md §4.2-§4.3, as sceneforge.layers.apply_rules"},
     {"grid_faces", grid_faces, METH_VARARGS,
      "grid_faces(depth, footprint, h, w, a, diagonal_a) -> (m, 3) int64 faces (bytes), as "
      "sceneforge.depth_mesh.grid_faces"},
@@ -1931,6 +2606,18 @@ PyMethodDef engine_methods[] = {
      "closing(scene_ids, n, origins, directions, near) -> closing hit arrays (bytes)"},
     {"collect", reinterpret_cast<PyCFunction>(engine_collect), METH_VARARGS,
      "collect(scene_ids, n, origins, directions, cutoff, margin, same_instance, raw) -> hit arrays (bytes)"},
+    {"nearest", reinterpret_cast<PyCFunction>(engine_nearest), METH_VARARGS,
+     "nearest(scene_ids, n, origins, directions, k, spare, margin, same_instance, t_out, face_out, front_out) -> "
+     "(longer, single): each ray's first k merged, sorted hits"},
+    {"frontal_nearest", reinterpret_cast<PyCFunction>(engine_frontal_nearest), METH_VARARGS,
+     "frontal_nearest(object_ids, closing_ids, objects, n, origins, directions, margin, same_instance, slack, k, "
+     "spare, depth_scale, rotation, labels, depth_out, normal_out, instance_out, label_out, front_out) -> (hits, "
+     "closing face, t, instance, triangle, front_facing, (longer, single)): the frontal query and nearest_surfaces "
+     "in one traversal per ray"},
+    {"nearest_surfaces", reinterpret_cast<PyCFunction>(engine_nearest_surfaces), METH_VARARGS,
+     "nearest_surfaces(scene_ids, n, origins, directions, k, spare, margin, same_instance, depth_scale, rotation, "
+     "labels, depth_out, normal_out, instance_out, label_out, front_out) -> (longer, single): the same hits as "
+     "a view's layers"},
     {"closest", reinterpret_cast<PyCFunction>(engine_closest), METH_VARARGS,
      "closest(scene_ids, points) -> distance per point (float64 bytes)"},
     {nullptr, nullptr, 0, nullptr},

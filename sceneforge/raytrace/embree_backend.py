@@ -25,7 +25,7 @@ import numpy as np
 
 from ..conventions import tol
 from ..errors import MissingDependencyError
-from . import T_MAX_MARGIN, FirstHit, FrontalHits, Hits, HouseTriangles, Rays
+from . import T_MAX_MARGIN, FirstHit, FrontalHits, Hits, HouseTriangles, NearestHits, NearestSurfaces, Rays
 
 try:
     from . import _embree
@@ -34,6 +34,9 @@ except ImportError:  # not built (no compiler or no Embree headers at install ti
 
 #: whether the compiled extension is importable (the default engine then)
 AVAILABLE = _embree is not None
+#: room for same-instance repeats in :meth:`EmbreeBackend.nearest`'s per-ray list beyond the
+#: k hits asked for: a ray whose repeats use it up is traced again with a longer list
+NEAREST_SPARE = 4
 
 
 def every_core() -> int:
@@ -149,6 +152,67 @@ class EmbreeBackend:
                             np.zeros(0, np.int64), self._triangles.normal)
         o, d = self._rows(rays)
         return self._first_hits(*self._engine.closing(self._selected(instances), n, o, d, 0.0))
+
+    def nearest(self, rays: Rays, k: int) -> NearestHits:
+        """:meth:`HouseTracer.nearest_hits <sceneforge.raytrace.HouseTracer.nearest_hits>` in
+        one traversal per ray and scene that keeps the ray's nearest hits and stops where no
+        farther one can be among them (see ``engine_nearest`` in ``_embree.cpp``), bit for bit
+        what the tracer makes of :meth:`intersect_all`."""
+        n = len(rays)
+        out = NearestHits(np.empty((k, n)), np.empty((k, n), dtype=np.int64), np.empty((k, n), dtype=bool))
+        if n:
+            o, d = self._rows(rays)
+            self._engine.nearest(self._selected(None), n, o, d, k, NEAREST_SPARE, T_MAX_MARGIN, tol.same_instance_hit,
+                                 out.t, out.face, out.front_facing)
+        return out
+
+    def nearest_surfaces(self, rays: Rays, k: int, depth_scale: np.ndarray, rotation: np.ndarray,
+                         labels: np.ndarray) -> NearestSurfaces:
+        """:meth:`HouseTracer.nearest_surfaces <sceneforge.raytrace.HouseTracer.nearest_surfaces>`:
+        :meth:`nearest`'s traversal, each ray's hits written as the view's layers as soon as
+        the ray is done (no hit arrays in between), bit for bit what the tracer makes of
+        :meth:`nearest`."""
+        n = len(rays)
+        out = NearestSurfaces(np.empty((k, n), dtype=np.float32), np.empty((k, 3, n), dtype=np.float32),
+                              np.empty((k, n), dtype=np.int32), np.empty((k, n), dtype=np.uint8),
+                              np.empty((k, n), dtype=bool))
+        if n:
+            o, d = self._rows(rays)
+            # a broadcast scale (an orthographic view: all 1) is passed as its one value
+            scale = depth_scale[:1] if depth_scale.strides[0] == 0 else np.ascontiguousarray(depth_scale)
+            self._engine.nearest_surfaces(self._selected(None), n, o, d, k, NEAREST_SPARE, T_MAX_MARGIN,
+                                          tol.same_instance_hit, scale, rotation, labels, out.depth, out.normal,
+                                          out.instance, out.label, out.front_facing)
+        return out
+
+    def frontal_nearest(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, k: int, depth_scale: np.ndarray,
+                        rotation: np.ndarray, labels: np.ndarray) -> tuple[FrontalHits, NearestSurfaces]:
+        """:meth:`frontal` and :meth:`nearest_surfaces` from one traversal per ray: each ray's
+        object hits up to its closing hit are taken from the nearest hits the K-nearest
+        traversal keeps (traced again as :meth:`frontal` traces them only where more surfaces
+        lie before the closing hit than that list holds), bit for bit the same arrays as the
+        two queries give."""
+        n = len(rays)
+        surfaces = NearestSurfaces(np.empty((k, n), dtype=np.float32), np.empty((k, 3, n), dtype=np.float32),
+                                   np.empty((k, n), dtype=np.int32), np.empty((k, n), dtype=np.uint8),
+                                   np.empty((k, n), dtype=bool))
+        if not n:
+            return self.frontal(rays, objects, envelope, 0.0), surfaces
+        o, d = self._rows(rays)
+        scale = depth_scale[:1] if depth_scale.strides[0] == 0 else np.ascontiguousarray(depth_scale)
+        out = self._engine.frontal_nearest(
+            self._selected(objects), self._selected(envelope), np.ascontiguousarray(objects, dtype=bool), n, o, d,
+            T_MAX_MARGIN, tol.same_instance_hit, tol.envelope_slack, k, NEAREST_SPARE, scale, rotation, labels,
+            surfaces.depth, surfaces.normal, surfaces.instance, surfaces.label, surfaces.front_facing)
+        (offsets, t, instance, triangle, front), c_face, c_t, c_instance, c_triangle, c_front, _ = out
+        hits = Hits(
+            offsets=np.frombuffer(offsets, dtype=np.int64),
+            t=np.frombuffer(t, dtype=np.float64),
+            instance=np.frombuffer(instance, dtype=np.int32),
+            triangle=np.frombuffer(triangle, dtype=np.int64),
+            front_facing=np.frombuffer(front, dtype=bool),
+        )
+        return FrontalHits(hits, self._first_hits(c_face, c_t, c_instance, c_triangle, c_front)), surfaces
 
     def _first_hits(self, face, t, instance, triangle, front) -> FirstHit:
         """The :class:`FirstHit` over the extension's result buffers (no copies)."""

@@ -103,8 +103,12 @@ def check_store(path: str, storage_options: dict | None = None) -> StoreCheck:
       a prediction store predicted);
     - content: cameras finite and rigid, classes in 0..40, failed views blank; in a dataset
       store also the ground-truth rules (M1 = M2, M3 = M4, D3 only after D1, depths
-      ordered and >= 0, classes and instances set exactly where a layer is), which a
-      prediction store does not follow (noted, not checked);
+      ordered and >= 0, classes and instances set exactly where a layer is; the labels of
+      every layer, where the store has them, docs/spec.md §4.7), which a prediction store
+      does not follow (noted, not checked);
+    - the ray-intersection layers, where the store has them (docs/spec.md §4.7): depths
+      ascending along the layers and NaN past the last, labels and unit normals set exactly
+      where a depth is, the first layer where the first surface (D1 or D5) is and no deeper;
     - meshes: offsets from 0 to the row counts, faces within their view's vertices,
       non-empty, non-degenerate meshes where the view has layers.
     Raises :class:`SceneforgeError` when there is no store at ``path``.
@@ -378,6 +382,10 @@ def _check_views(store: SceneStore, config: "DatasetConfig", prediction: bool,
         for k, layer in ((0, 0), (1, 2)):
             report(f"instance of {LAYER_NAMES[layer]} is not set exactly where {LAYER_NAMES[layer]} is",
                    _per_view(f[:, layer] != (inst[:, k] >= 0)), start)
+        if "layers/category" in a:
+            _check_layer_labels(a, f, report, start)
+        if "intersections/depth" in a:
+            _check_intersections(a, v, report, start)
         report("overhead: D1 and D2 are not set on the same pixels", _per_view(fo[:, 0] != fo[:, 1]), start)
         report("overhead_height is not set exactly where overhead D1 is",
                _per_view(np.isfinite(a["overhead_height"]) != fo[:, 0]), start)
@@ -385,6 +393,66 @@ def _check_views(store: SceneStore, config: "DatasetConfig", prediction: bool,
         layers.append(np.stack([_per_view(f[:, 0]), _per_view(f[:, 4])], axis=1))
     complete = not prediction and sum(map(len, layers)) == len(store)
     return problems + found.lines(), np.concatenate(layers) if complete and layers else None
+
+
+def _check_layer_labels(a: dict[str, np.ndarray], f: np.ndarray, report, start: int) -> None:
+    """The rules of the labels of every layer (docs/spec.md §4.7) on a block of views: ``a``
+    its arrays, ``f`` (n, 5, H, W) bool where its layers are set."""
+    cat, inst, normal = a["layers/category"], a["layers/instance"], a["layers/normal"]
+    report("layers/category of D1, D3, D5 is not the category array", _per_view(cat[:, 0::2] != a["category"]), start)
+    report("layers/instance of D1, D3 is not the instance array", _per_view(inst[:, [0, 2]] != a["instance"]), start)
+    report("layers/category, layers/instance: D2 is not labelled as D1, or D4 as D3",
+           _per_view(cat[:, [1, 3]] != cat[:, [0, 2]]) | _per_view(inst[:, [1, 3]] != inst[:, [0, 2]]), start)
+    report("layers/instance is not set exactly where its layer is", _per_view((inst >= 0) != f), start)
+    report("layers/category is set where its layer is NaN", _per_view(~f & (cat != 0)), start)
+    finite = np.isfinite(normal)
+    report("layers/normal is not set exactly where its layer is (all three components)",
+           _per_view(finite.any(axis=2) != f) | _per_view(finite.any(axis=2) != finite.all(axis=2)), start)
+    with np.errstate(invalid="ignore"):
+        report("layers/normal is not of unit length", _per_view(np.abs(np.linalg.norm(normal, axis=2) - 1)
+                                                                 > tol.stored_normal), start)
+        if "normal" in a:
+            # where D1 is nearer than D5, D1's face is the first hit: the stored first-hit
+            # normal is its winding normal, turned to face the camera
+            d = a["depth"]
+            first = f[:, 0] & ~(d[:, 4] <= d[:, 0])
+            cos = np.abs(np.einsum("nchw,nchw->nhw", normal[:, 0], a["normal"]))
+            report("layers/normal of D1 is not the first-hit normal (up to its facing) where D1 is the first hit",
+                   _per_view(first & ~(cos >= 1 - tol.stored_normal)), start)
+
+
+def _check_intersections(a: dict[str, np.ndarray], valid: np.ndarray, report, start: int) -> None:
+    """The rules of the ray-intersection layers (docs/spec.md §4.7) on a block of views: ``a``
+    its arrays, ``valid`` (n,) bool its computed views."""
+    d = a["intersections/depth"]
+    f = np.isfinite(d)
+    report("intersections: a failed view holds data", ~valid & _per_view(f), start)
+    report("intersections/depth: a layer set after an empty one (NaN must be past the last surface)",
+           _per_view(f[:, 1:] & ~f[:, :-1]), start)
+    with np.errstate(invalid="ignore"):
+        report("intersections/depth: negative depth", _per_view(d < 0), start)
+        report("intersections/depth: not ascending along the layers", _per_view(d[:, 1:] < d[:, :-1]), start)
+        # the first surface of a ray is its first object hit or its closing hit, whichever is
+        # nearer; the closing hit is the nearest envelope hit up to float32 ties, so only
+        # "not deeper" holds exactly
+        first = np.fmin(a["depth"][:, 0], a["depth"][:, 4])
+        report("intersections/depth: layer 0 is not set exactly where D1 or D5 is", _per_view(f[:, 0] != np.isfinite(first)),
+               start)
+        report("intersections/depth: layer 0 is deeper than D1 or D5", _per_view(d[:, 0] > first), start)
+    report("intersections/instance is not set exactly where its depth is", _per_view((a["intersections/instance"] >= 0) != f),
+           start)
+    report("intersections/category is set where its depth is NaN", _per_view(~f & (a["intersections/category"] != 0)), start)
+    report("intersections/category: a class outside 0..40", _per_view(a["intersections/category"] >= len(NYU40_NAMES)),
+           start)
+    report("intersections/front_facing is set where its depth is NaN", _per_view(~f & a["intersections/front_facing"]),
+           start)
+    normal = a["intersections/normal"]
+    finite = np.isfinite(normal)
+    report("intersections/normal is not set exactly where its depth is (all three components)",
+           _per_view(finite.any(axis=2) != f) | _per_view(finite.any(axis=2) != finite.all(axis=2)), start)
+    with np.errstate(invalid="ignore"):
+        report("intersections/normal is not of unit length",
+               _per_view(np.abs(np.linalg.norm(normal, axis=2) - 1) > tol.stored_normal), start)
 
 
 def _check_meshes(store: SceneStore, layers: np.ndarray | None) -> list[str]:
