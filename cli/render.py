@@ -212,32 +212,59 @@ def show(store, index, output, ply, truth):
 @click.argument("store")
 @click.argument("out_dir", type=click.Path(file_okay=False))
 @click.option("--format", "fmt", type=click.Choice(sorted(FORMATS)), default="exr", show_default=True,
-              help="File format: one multi-part OpenEXR per view (frontal: D1..D5 and RGB as float "
-                   "channels, the classes category.D1/D3/D5 and instances instance.D1/D3 as uint "
-                   "channels; overhead: height, D1..D5 and category; camera metadata in the headers).")
+              help="File format. " + "; ".join(f"{name}: {f.help}" for name, f in FORMATS.items()) + ".")
+@click.option("--split-file", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="lari: the house split its lists follow. [default: the split file beside STORE, if any]")
 @click.option("--overwrite", is_flag=True,
-              help="Replace an earlier export in OUT_DIR: its view files are deleted first (all of them, also "
-                   "views beyond this store's count). A folder holding any other file is refused.")
-def export(store, out_dir, fmt, overwrite):
-    """Write every view of STORE as a file in OUT_DIR, named by its view index with six
+              help="Replace an earlier export in OUT_DIR, of either format: its files are deleted first (all of "
+                   "them, also views beyond this store's count). A folder holding any other file is refused.")
+def export(store, out_dir, fmt, split_file, overwrite):
+    """Write every view of STORE as files in OUT_DIR, named by its view index with six
     digits: view_000000.exr, view_000001.exr, ... (each written atomically).
 
     OUT_DIR is new or empty, or holds an earlier export (replaced with --overwrite); never
     the store, a folder inside or around it, or inside any zarr store. An EXR file holds the
     view's depth layers, RGB, classes (NYU40, 0 = none) and instances (the int32 bits: -1,
-    none, reads as 4294967295 until viewed as int32)."""
-    from rich.progress import track
+    none, reads as 4294967295 until viewed as int32). --format lari writes the valid views
+    of a store rendered with --intersections K in LaRI's ScanNet++ layout (docs/store.md)."""
+    from rich.console import Console
 
     from sceneforge.store import open_store
-    from sceneforge.store.export import check_export_folder
+    from sceneforge.store.export import check_export_folder, remove_export
 
+    exporter = FORMATS[fmt]
     earlier = check_export_folder(out_dir, store, overwrite=overwrite)
     s = open_store(store)
+    views = exporter.views(s)
+    split, split_path = _house_split(store, split_file) if exporter.lists else (None, None)
+    lists = exporter.lists(s, views, split) if exporter.lists else {}
     check_output(out_dir, "export folder", kind="folder")
-    for path in earlier:  # all of them, so that the folder never mixes two exports
-        path.unlink()
+    remove_export(earlier)  # all of it, so that the folder never mixes two exports
     out = Path(out_dir)
-    for i in track(range(len(s)), description="exporting", transient=True):
-        with atomic_output(out / f"view_{i:06d}.{fmt}") as tmp:
-            FORMATS[fmt](s, i, tmp)
-    click.echo(f"{plural(len(s), 'view')} written to {out}")
+    with progress_bar(Console(stderr=True), transient=True) as bar:
+        progress = RichProgress(bar)
+        progress.start("exporting", len(views), "views")
+        for i in views:
+            for name, write in exporter.files(s, i):
+                with atomic_output(out / name) as tmp:
+                    write(tmp)
+            progress.advance(1)
+    for name, data in lists.items():
+        with atomic_output(out / name) as tmp:
+            tmp.write_bytes(data)
+    left_out = f" ({plural(len(s) - len(views), 'failed view')} left out)" if len(views) < len(s) else ""
+    listed_in = f"; lists {', '.join(lists)} ({f'split {split_path}' if split else 'no split file'})" if lists else ""
+    click.echo(f"{plural(len(views), 'view')} written to {out}{left_out}{listed_in}")
+
+
+def _house_split(store: str, split_file: str | None) -> tuple[dict | None, str | None]:
+    """The house ids of each split, by the split file given or else the one beside STORE
+    (none: (None, None)), and its path."""
+    from sceneforge.learn.split import SPLITS, default_split_file, read_split
+    from sceneforge.store.location import read_file
+
+    path = split_file or default_split_file([store])
+    if split_file is None and read_file(path) is None:
+        return None, None
+    houses = read_split(path).houses
+    return {name: houses[name] for name in SPLITS}, path

@@ -50,6 +50,10 @@ SAMPLE_FIELDS: dict[str, tuple[str, ...]] = {
     "overhead_height": ("overhead_height", "overhead_depth"),
     "overhead_seg": ("overhead_category", "overhead_depth"),
     "camera": ("K", "cam_to_world", "overhead_cam_to_world", "overhead_extent", "overhead_params"),
+    "intersections": ("intersections/depth",),
+    "intersection_labels": ("intersections/instance", "intersections/category"),
+    "intersection_normal": ("intersections/normal",),
+    "intersection_front_facing": ("intersections/front_facing",),
 }
 
 
@@ -144,6 +148,20 @@ class StoreDataset(torch.utils.data.Dataset):
     - ``camera``: ``K`` (3, 3), ``cam_to_world``, ``overhead_cam_to_world`` (4, 4),
       ``overhead_extent`` () and ``overhead_params`` (5,) float64
 
+    The K ray-intersection layers (docs/spec.md §4.7), of stores rendered with
+    ``--intersections K`` (L = K; another store raises :class:`SceneforgeError`), each
+    layer k the k-th surface along the pixel's ray, past the ray's last surface the fill
+    value given:
+
+    - ``intersections``: ``intersection_depth`` (L, H, W) float32 planar depth, metres
+      (NaN: kept, as in ``depth``), and ``intersection_valid`` (L, H, W) bool, where it is
+      finite: the mask to take a loss over
+    - ``intersection_labels``: ``intersection_instance`` (L, H, W) int64 house instance
+      (−1) and ``intersection_category`` (L, H, W) int64 NYU40 class (0)
+    - ``intersection_normal``: (L, 3, H, W) float32 unit winding normal of the face, camera
+      frame, not turned to face the camera (NaN)
+    - ``intersection_front_facing``: (L, H, W) bool, the ray meets the face's front (false)
+
     Every sample also has ``index`` (its position in the dataset) int64.
     """
 
@@ -173,6 +191,10 @@ class StoreDataset(torch.utils.data.Dataset):
         store = self._stores()[int(self.index.store[i])]
         v = int(self.index.view[i])
         read = lambda name: np.asarray(store.array(name)[v])  # noqa: E731
+        missing = [name for field in self.fields for name in SAMPLE_FIELDS[field] if name not in store.names]
+        if missing:  # only the optional intersection layers can be: the index checked the rest
+            raise SceneforgeError(f"{store.where}: the store has no {', '.join(missing)}, which the sample fields "
+                                  f"{', '.join(self.fields)} read; render it with --intersections K")
         out: dict[str, torch.Tensor] = {"index": torch.tensor(i, dtype=torch.int64)}
         if "rgb" in self.fields:
             out["rgb"] = torch.from_numpy(normalize_rgb(read("rgb")))
@@ -193,4 +215,15 @@ class StoreDataset(torch.utils.data.Dataset):
         if "camera" in self.fields:
             for name in SAMPLE_FIELDS["camera"]:
                 out[name] = torch.from_numpy(read(name).astype(np.float64))
+        if "intersections" in self.fields:
+            depth = read("intersections/depth").astype(np.float32)
+            out["intersection_depth"] = torch.from_numpy(depth)
+            out["intersection_valid"] = torch.from_numpy(np.isfinite(depth))
+        if "intersection_labels" in self.fields:
+            out["intersection_instance"] = torch.from_numpy(read("intersections/instance").astype(np.int64))
+            out["intersection_category"] = torch.from_numpy(read("intersections/category").astype(np.int64))
+        if "intersection_normal" in self.fields:
+            out["intersection_normal"] = torch.from_numpy(read("intersections/normal").astype(np.float32))
+        if "intersection_front_facing" in self.fields:
+            out["intersection_front_facing"] = torch.from_numpy(read("intersections/front_facing").astype(bool))
         return out
