@@ -881,6 +881,9 @@ PyObject* engine_closing(EngineObject* self, PyObject* args) {
 //            found first (closing_hits, from `near` on) and its cutoff is the closing
 //            distance + slack (inf where none); five more bytearrays follow the Hits ones,
 //            the closing hits: face i8, t f8, instance i4, triangle i8, front_facing bool
+PyObject* hits_result(const EngineObject* self, std::vector<BlockHits>& blocks, int64_t n_blocks, int64_t n,
+                      double tol);
+
 PyObject* engine_collect(EngineObject* self, PyObject* args) {
     PyObject *ids, *origins, *directions, *cutoff_obj, *closing_obj = Py_None;
     Py_ssize_t n;
@@ -1009,108 +1012,20 @@ PyObject* engine_collect(EngineObject* self, PyObject* args) {
         return Py_BuildValue("(NN)", a, f);
     }
 
-    // pass 2: order each ray's hits as `_order_by_ray_and_distance` does -- by the float key
-    // ray * (span + 1) + (t - t_min) over the whole batch, exact key ties by face -- and drop
-    // same-instance repeats as `_same_instance_repeats` does
-    double t0 = inf, t1 = -inf;
-    for (int64_t b = 0; b < n_blocks; ++b) t0 = std::min(t0, blocks[b].t_min), t1 = std::max(t1, blocks[b].t_max);
-    const double span = (t1 - t0) + 1.0;
-    Py_BEGIN_ALLOW_THREADS
-    parallel_blocks(n_blocks, self->threads, [&](int64_t b) {
-        BlockHits& blk = blocks[b];
-        std::vector<std::pair<double, int64_t>> keyed;  // (key, position in the ray's hits)
-        std::vector<HitRecord> sorted;
-        size_t h = 0, written = 0;  // kept hits go back into blk.hits, never past the ray being read
-        for (size_t j = 0; j < blk.counts.size(); ++j) {
-            const int64_t count = blk.counts[j];
-            const double r = static_cast<double>(b * kBlock + static_cast<int64_t>(j));
-            HitRecord* hits = blk.hits.data() + h;
-            h += count;
-            if (count == 0) continue;
-            if (count == 1) {  // nothing to order or merge (most rays of a view)
-                blk.hits[written++] = hits[0];
-                continue;
-            }
-            keyed.resize(count);
-            for (int64_t k = 0; k < count; ++k) keyed[k] = {r * span + (hits[k].t - t0), k};
-            // hits equal in (key, face) are the same record, so every sort by (key, face)
-            // gives the same result; insertion sort for the few hits of most rays
-            auto before = [&](const std::pair<double, int64_t>& x, const std::pair<double, int64_t>& y) {
-                if (x.first != y.first) return x.first < y.first;
-                return hits[x.second].face < hits[y.second].face;
-            };
-            if (count <= 24) {
-                for (int64_t k = 1; k < count; ++k) {
-                    const auto item = keyed[k];
-                    int64_t i = k;
-                    for (; i > 0 && before(item, keyed[i - 1]); --i) keyed[i] = keyed[i - 1];
-                    keyed[i] = item;
-                }
-            } else {
-                std::sort(keyed.begin(), keyed.end(), before);
-            }
-            sorted.resize(count);
-            for (int64_t k = 0; k < count; ++k) sorted[k] = hits[keyed[k].second];
-            int64_t n_kept = 0;
-            for (int64_t k = 0; k < count; ++k) {
-                // a repeat: within tol after an earlier hit of the same instance, every hit
-                // in between also within tol of this one
-                bool repeat = false;
-                const int32_t inst = face_instance[sorted[k].face];
-                for (int64_t s = k - 1; s >= 0 && sorted[k].t - sorted[s].t <= tol; --s)
-                    if (face_instance[sorted[s].face] == inst) {
-                        repeat = true;
-                        break;
-                    }
-                if (!repeat) blk.hits[written++] = sorted[k], ++n_kept;
-            }
-            blk.counts[j] = n_kept;
-        }
-        blk.hits.resize(written);
-    });
-    Py_END_ALLOW_THREADS
-
-    total = 0;
-    for (int64_t b = 0; b < n_blocks; ++b) total += static_cast<int64_t>(blocks[b].hits.size());
-    PyObject* offsets_b = PyByteArray_FromStringAndSize(nullptr, (n + 1) * sizeof(int64_t));
-    PyObject* t_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(double));
-    PyObject* inst_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int32_t));
-    PyObject* tri_b = PyByteArray_FromStringAndSize(nullptr, total * sizeof(int64_t));
-    PyObject* front_b = PyByteArray_FromStringAndSize(nullptr, total);
-    if (!offsets_b || !t_b || !inst_b || !tri_b || !front_b) {
-        Py_XDECREF(offsets_b);
-        Py_XDECREF(t_b);
-        Py_XDECREF(inst_b);
-        Py_XDECREF(tri_b);
-        Py_XDECREF(front_b);
-        for (PyObject* o : closing_out) Py_XDECREF(o);
-        return nullptr;
+    // pass 2 and the output: each ray's hits ordered as `_order_by_ray_and_distance` does and
+    // same-instance repeats dropped as `_same_instance_repeats` does (hits_result, shared with
+    // the nearest-hits queries)
+    PyObject* hits = hits_result(self, blocks, n_blocks, n, tol);
+    if (!hits || !closing) {
+        if (!hits)
+            for (PyObject* o : closing_out) Py_XDECREF(o);
+        return hits;
     }
-    int64_t* offsets = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(offsets_b));
-    double* t = reinterpret_cast<double*>(PyByteArray_AS_STRING(t_b));
-    int32_t* instance = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(inst_b));
-    int64_t* triangle = reinterpret_cast<int64_t*>(PyByteArray_AS_STRING(tri_b));
-    bool* front = reinterpret_cast<bool*>(PyByteArray_AS_STRING(front_b));
-    int64_t k = 0;
-    offsets[0] = 0;
-    for (int64_t b = 0; b < n_blocks; ++b) {
-        const auto& blk = blocks[b];
-        for (size_t j = 0; j < blk.counts.size(); ++j) {
-            const int64_t r = b * kBlock + static_cast<int64_t>(j);
-            offsets[r + 1] = offsets[r] + blk.counts[j];
-        }
-        for (const auto& hit : blk.hits) {
-            const int32_t inst = face_instance[hit.face];
-            t[k] = hit.t;
-            instance[k] = inst;
-            triangle[k] = hit.face - first_face[inst];
-            front[k] = hit.cos < 0;
-            ++k;
-        }
-    }
-    if (!closing) return Py_BuildValue("(NNNNN)", offsets_b, t_b, inst_b, tri_b, front_b);
-    return Py_BuildValue("(NNNNNNNNNN)", offsets_b, t_b, inst_b, tri_b, front_b, closing_out[0], closing_out[1],
-                         closing_out[2], closing_out[3], closing_out[4]);
+    PyObject* both = Py_BuildValue("(OOOOONNNNN)", PyTuple_GET_ITEM(hits, 0), PyTuple_GET_ITEM(hits, 1),
+                                   PyTuple_GET_ITEM(hits, 2), PyTuple_GET_ITEM(hits, 3), PyTuple_GET_ITEM(hits, 4),
+                                   closing_out[0], closing_out[1], closing_out[2], closing_out[3], closing_out[4]);
+    Py_DECREF(hits);
+    return both;
 }
 
 // ------------------------------------------------------------------ the K nearest hits
