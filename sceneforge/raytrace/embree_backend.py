@@ -111,13 +111,7 @@ class EmbreeBackend:
         c = None if cutoff is None else np.ascontiguousarray(cutoff, dtype=np.float64)
         offsets, t, instance, triangle, front = self._engine.collect(
             self._selected(instances), n, o, d, c, T_MAX_MARGIN, tol.same_instance_hit, False)
-        return Hits(
-            offsets=np.frombuffer(offsets, dtype=np.int64),
-            t=np.frombuffer(t, dtype=np.float64),
-            instance=np.frombuffer(instance, dtype=np.int32),
-            triangle=np.frombuffer(triangle, dtype=np.int64),
-            front_facing=np.frombuffer(front, dtype=bool),
-        )
+        return _hits_of(offsets, t, instance, triangle, front)
 
     def frontal(self, rays: Rays, objects: np.ndarray, envelope: np.ndarray, envelope_near: float) -> FrontalHits:
         """:meth:`HouseTracer.frontal_query <sceneforge.raytrace.HouseTracer.frontal_query>`
@@ -133,13 +127,7 @@ class EmbreeBackend:
         out = self._engine.collect(self._selected(objects), n, o, d, None, T_MAX_MARGIN, tol.same_instance_hit,
                                    False, self._selected(envelope), float(envelope_near), tol.envelope_slack)
         offsets, t, instance, triangle, front, c_face, c_t, c_instance, c_triangle, c_front = out
-        hits = Hits(
-            offsets=np.frombuffer(offsets, dtype=np.int64),
-            t=np.frombuffer(t, dtype=np.float64),
-            instance=np.frombuffer(instance, dtype=np.int32),
-            triangle=np.frombuffer(triangle, dtype=np.int64),
-            front_facing=np.frombuffer(front, dtype=bool),
-        )
+        hits = _hits_of(offsets, t, instance, triangle, front)
         return FrontalHits(hits, self._first_hits(c_face, c_t, c_instance, c_triangle, c_front))
 
     def first_hit(self, rays: Rays, instances: np.ndarray | None = None) -> FirstHit:
@@ -205,13 +193,7 @@ class EmbreeBackend:
             T_MAX_MARGIN, tol.same_instance_hit, tol.envelope_slack, k, NEAREST_SPARE, scale, rotation, labels,
             surfaces.depth, surfaces.normal, surfaces.instance, surfaces.label, surfaces.front_facing)
         (offsets, t, instance, triangle, front), c_face, c_t, c_instance, c_triangle, c_front, _ = out
-        hits = Hits(
-            offsets=np.frombuffer(offsets, dtype=np.int64),
-            t=np.frombuffer(t, dtype=np.float64),
-            instance=np.frombuffer(instance, dtype=np.int32),
-            triangle=np.frombuffer(triangle, dtype=np.int64),
-            front_facing=np.frombuffer(front, dtype=bool),
-        )
+        hits = _hits_of(offsets, t, instance, triangle, front)
         return FrontalHits(hits, self._first_hits(c_face, c_t, c_instance, c_triangle, c_front)), surfaces
 
     def _first_hits(self, face, t, instance, triangle, front) -> FirstHit:
@@ -244,6 +226,14 @@ class EmbreeBackend:
     def closest_distance(self, points: np.ndarray) -> np.ndarray:
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         return np.frombuffer(self._engine.closest(self._selected(None), p), dtype=np.float64)
+
+
+def _hits_of(offsets, t, instance, triangle, front) -> Hits:
+    """:class:`Hits` over the extension's output bytearrays (no copies): offsets int64, t
+    float64, instance int32, triangle int64, front_facing bool."""
+    return Hits(offsets=np.frombuffer(offsets, dtype=np.int64), t=np.frombuffer(t, dtype=np.float64),
+                instance=np.frombuffer(instance, dtype=np.int32), triangle=np.frombuffer(triangle, dtype=np.int64),
+                front_facing=np.frombuffer(front, dtype=bool))
 
 
 def _empty_hits(n_rays: int) -> Hits:
