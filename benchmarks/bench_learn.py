@@ -8,11 +8,17 @@ project's own code (``sceneforge.learn.stages``: its nets, loss and EFT); data l
 left out. The overhead stage's EFT reads the batch's layers (``eft_layers="truth"``):
 the untrained frozen nets' layers would be noise, and the EFT's work depends on them.
 
-EFT: milliseconds per batch of the overhead nets' 232-channel input (geometry, best-guess
-height, frustum mask, (D1, D2) and (D3, D4) volume transfers of RGB + 48 + 64 features),
-forward under ``no_grad`` (how the overhead stage runs it, its inputs frozen) and forward +
-backward to the features. ``--eft-baseline`` also times the transfers done the obvious way
-(gather every (ray, overhead pixel) pair and ``index_add``, fp32) against sceneforge's.
+EFT: milliseconds per batch (and images/s) of the overhead nets' 232-channel input
+(geometry, best-guess height, frustum mask, (D1, D2) and (D3, D4) volume transfers of RGB +
+48 + 64 features, channels-last as the trainer's frozen nets give them), forward under
+``no_grad`` (how the overhead stage runs it, its inputs frozen) and forward + backward to
+the features (a fixed gradient in the output's layout handed to ``backward``: the loss's
+own work is not the EFT's), for sceneforge's EFT (bags, one ``embedding_bag``) beside its
+reference (``reference=True``: the previous sparse-matrix implementation), in alternating
+blocks of calls (two rounds), ``--eft-steps`` calls each (the median), with the ratio and
+the largest difference of their outputs and gradients. ``--eft-baseline`` also times the transfers
+done the obvious way (gather every (ray, overhead pixel) pair and ``index_add``, fp32)
+against sceneforge's.
 
 Each is measured in fp32 and under ``torch.autocast`` (done here, not by the trainer):
 bf16 on the CPU, bf16 and fp16 on CUDA (fp16 with a gradient scaler), all in the same run;
@@ -24,6 +30,7 @@ box, smooth random D1..D4 with 70 % object pixels. GFLOP per image is counted by
     python benchmarks/bench_learn.py                   # paper sizes, every stage, CPU or GPU
     python benchmarks/bench_learn.py --quick           # smoke run: small images and nets
     python benchmarks/bench_learn.py --batch 2 --steps 2 --device cpu --stages depth,seg
+    python benchmarks/bench_learn.py --stages none --precisions fp32   # the EFT against its reference
 """
 
 from __future__ import annotations
@@ -153,7 +160,7 @@ def timed(fn, warmup: int, steps: int, device: torch.device) -> tuple[float, flo
 
 class Fp32EFT(EpipolarFeatureTransformer):
     """The EFT with autocast off and its features in fp32: what an AMP step must do where
-    torch's sparse CSR product has no kernel for the AMP dtype (:func:`eft_amp_error`)."""
+    the EFT has no kernel for the AMP dtype (:func:`eft_amp_error`)."""
 
     def forward(self, rgb, depth_features, seg_features, depth, geom):
         with torch.autocast(rgb.device.type, enabled=False):
@@ -267,44 +274,75 @@ def baseline_transfer(features, geom, near, far, chunk: int = 1 << 20):
     return (out / count[:, None]).reshape(B, R, R, C).permute(0, 3, 1, 2)
 
 
-def eft_inputs(batch: dict, args, device, dtype: torch.dtype):
+def eft_inputs(batch: dict, args, device, dtype: torch.dtype, channels_last: bool = False):
     """The frontal features the EFT reads (random, at the paper's widths × ``--width``),
-    in the dtype the nets give them (autocast: the AMP dtype)."""
+    in the dtype the nets give them (autocast: the AMP dtype), channels-last if asked."""
     B, _, H, W = batch["rgb"].shape
     cd = max(2, round(DEPTH_NET.channels[0] * args.width))
     cs = max(2, round(SEG_NET.channels[0] * args.width))
     g = torch.Generator().manual_seed(1)
-    depth_features = torch.randn(B, cd, H, W, generator=g).to(device, dtype)
-    seg_features = torch.randn(B, cs, H, W, generator=g).to(device, dtype)
+    layout = torch.channels_last if channels_last else torch.contiguous_format
+    depth_features = torch.randn(B, cd, H, W, generator=g).to(device, dtype, memory_format=layout)
+    seg_features = torch.randn(B, cs, H, W, generator=g).to(device, dtype, memory_format=layout)
     return depth_features, seg_features
 
 
-def bench_eft(precision: Precision, batch: dict, args, device, R: int, eft_fp32: bool = False) -> dict[str, float]:
-    """ms per batch of the EFT forward (no_grad) and forward + backward (``eft_fp32``: the
-    features cast to fp32 and autocast off inside it, :class:`Fp32EFT`)."""
+def bench_eft(precision: Precision, batch: dict, args, device, R: int, eft_fp32: bool = False) -> dict:
+    """The EFT and its reference (``reference=True``), forward (no_grad) and forward +
+    backward (``eft_fp32``: the features cast to fp32 and autocast off inside it,
+    :class:`Fp32EFT`), in alternating blocks of calls: ``{(which, mode): ms per call}``
+    (the median of ``--eft-steps`` calls) and the largest differences of their outputs and
+    gradients (``"out"``, ``"grad"``)."""
     from sceneforge.learn.stages import geometry
 
-    eft = (Fp32EFT if eft_fp32 else EpipolarFeatureTransformer)(resolution=R)
+    cls = Fp32EFT if eft_fp32 else EpipolarFeatureTransformer
+    efts = {"new": cls(resolution=R), "reference": cls(resolution=R, reference=True)}
     dtype = precision.dtype or torch.float32
-    depth_features, seg_features = eft_inputs(batch, args, device, dtype)
-    rgb, layers = batch["rgb"], batch["depth"][:, :4]
+    # channels-last, as the trainer's frozen nets give them (it makes every net channels-last)
+    depth_features, seg_features = eft_inputs(batch, args, device, dtype, channels_last=True)
+    rgb, layers = batch["rgb"].contiguous(memory_format=torch.channels_last), batch["depth"][:, :4]
+    grads, last = {}, {}
 
-    def run(grad: bool):
+    def run(which: str, grad: bool):
         df = depth_features.detach().requires_grad_(grad)
         sf = seg_features.detach().requires_grad_(grad)
         with precision.autocast(device), torch.set_grad_enabled(grad):
-            out = eft(rgb, df, sf, layers, geometry(batch, tuple(rgb.shape[-2:]), R))
+            out = efts[which](rgb, df, sf, layers, geometry(batch, tuple(rgb.shape[-2:]), R))
         if grad:
-            out.float().square().sum().backward()
+            # the same gradient for both, in the output's layout (as a net's backward sends
+            # it), made on the warm-up call
+            if which not in grads:
+                g = torch.Generator().manual_seed(2)
+                grads[which] = torch.empty_like(out).copy_(torch.randn(out.shape, generator=g).to(out))
+            out.backward(grads[which])
+        last[which, grad] = out.detach(), (df.grad, sf.grad)
 
-    forward, _ = timed(lambda: run(False), args.warmup, args.steps, device)
-    backward, _ = timed(lambda: run(True), args.warmup, args.steps, device)
-    return {"forward": forward * 1000, "backward": backward * 1000}
+    times = {}
+    for grad in (False, True):
+        for _ in range(args.warmup):
+            for which in efts:
+                run(which, grad)
+        # two rounds of a block of calls each, reference and new in turn: each runs in its
+        # own steady state (as in a training loop), and a drift of the machine's load
+        # reaches both
+        for block in (args.eft_steps // 2, args.eft_steps - args.eft_steps // 2):
+            for which in efts:
+                for _ in range(block):
+                    sync(device)
+                    t = time.perf_counter()
+                    run(which, grad)
+                    sync(device)
+                    times.setdefault((which, grad), []).append(time.perf_counter() - t)
+    result = {key: 1000 * float(np.median(ts)) for key, ts in times.items()}
+    result["out"] = (last["new", False][0].float() - last["reference", False][0].float()).abs().max().item()
+    result["grad"] = max((a.float() - b.float()).abs().max().item()
+                         for a, b in zip(last["new", True][1], last["reference", True][1]))
+    return result
 
 
 def bench_eft_baseline(batch: dict, args, device, R: int) -> tuple[float, float]:
-    """ms per batch of the two volume transfers, fp32 forward + backward: sceneforge's sparse
-    matrices and the gather + index_add baseline (checked equal)."""
+    """ms per batch of the two volume transfers, fp32 forward + backward: sceneforge's bags
+    and the gather + index_add baseline (checked equal)."""
     from sceneforge.learn.eft import transfer_volume
     from sceneforge.learn.stages import geometry
 
@@ -363,6 +401,9 @@ def parse_args():
     parser.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
                         help="nets and images in channels-last memory (default: on a GPU only)")
     parser.add_argument("--no-eft", action="store_true", help="skip the EFT timings")
+    parser.add_argument("--eft-steps", type=int, default=None,
+                        help="timed calls of the EFT and of its reference each, the median reported "
+                             "(default: 7 on the CPU, 20 on a GPU)")
     parser.add_argument("--eft-baseline", action="store_true",
                         help="also time the volume transfers against a gather + index_add baseline (fp32)")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
@@ -373,8 +414,9 @@ def parse_args():
     if device.type == "cuda" and not torch.cuda.is_available():
         parser.error(f"--device {args.device}: torch sees no CUDA GPU")
     gpu = device.type == "cuda"
-    defaults = dict(batch=1, steps=1, warmup=1, width=0.25) if args.quick else \
-        dict(batch=24 if gpu else 2, steps=10 if gpu else 2, warmup=3 if gpu else 1, width=1.0)
+    defaults = dict(batch=1, steps=1, warmup=1, width=0.25, eft_steps=3) if args.quick else \
+        dict(batch=24 if gpu else 2, steps=10 if gpu else 2, warmup=3 if gpu else 1, width=1.0,
+             eft_steps=20 if gpu else 7)
     for key, value in defaults.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
@@ -386,8 +428,8 @@ def parse_args():
     if unknown or args.precisions[0] != "fp32":
         parser.error(f"unknown stage or precision {sorted(unknown)}, or fp32 not first" if unknown
                      else "--precisions must start with fp32 (the ratios' reference)")
-    if min(args.batch, args.steps, args.warmup + 1) < 1 or not args.width > 0:
-        parser.error("--batch and --steps must be >= 1, --warmup >= 0, --width > 0")
+    if min(args.batch, args.steps, args.eft_steps, args.warmup + 1) < 1 or not args.width > 0:
+        parser.error("--batch, --steps and --eft-steps must be >= 1, --warmup >= 0, --width > 0")
     if args.threads:
         torch.set_num_threads(args.threads)
     if gpu:
@@ -428,13 +470,22 @@ def main() -> None:
                      values, True, peaks))
         del frontal
 
+    eft_rows = []  # (precision, mode, reference ms, new ms)
     if not args.no_eft:
-        eft = {p.name: bench_eft(p, batch, args, device, R, eft_fp32.get(p.name, False)) for p in precisions}
-        for key, label in (("forward", "EFT forward (no_grad), ms/batch"),
-                           ("backward", "EFT forward + backward, ms/batch")):
-            values = {name: e[key] for name, e in eft.items()}
-            print(f"  {label}: " + ", ".join(f"{k} {v:.0f}" for k, v in values.items()), flush=True)
-            rows.append((label, None, values, False, {}))
+        for p in precisions:
+            e = bench_eft(p, batch, args, device, R, eft_fp32.get(p.name, False))
+            for grad, label in ((False, "forward (no_grad)"), (True, "forward + backward")):
+                ref, new = e["reference", grad], e["new", grad]
+                eft_rows.append((p.name, label, ref, new))
+                print(f"  EFT {label} {p.name}: {new:.0f} ms/batch ({1000 * args.batch / new:.3g} images/s), "
+                      f"reference {ref:.0f} ms/batch ({1000 * args.batch / ref:.3g} images/s): "
+                      f"{ref / new:.2f}x faster", flush=True)
+            print(f"  EFT {p.name}: outputs differ from the reference's by <= {e['out']:.2g}, "
+                  f"gradients by <= {e['grad']:.2g}", flush=True)
+        for grad, label in ((False, "EFT forward (no_grad), ms/batch"),
+                            (True, "EFT forward + backward, ms/batch")):
+            mode = "forward (no_grad)" if not grad else "forward + backward"
+            rows.append((label, None, {name: n for name, m, _, n in eft_rows if m == mode}, False, {}))
 
     cuda = device.type == "cuda"
     head = ["measure", "GFLOP/image"] + [p.name for p in precisions] + [f"{p.name} ÷ fp32" for p in amp]
@@ -456,6 +507,17 @@ def main() -> None:
     for what, gflop, values, _, _ in rows:
         if gflop is not None:
             print(f"  {what.split(':')[0]}: fp32 reaches {gflop * values['fp32']:.3g} GFLOP/s")
+
+    if eft_rows:
+        print()
+        print(f"| EFT, batch {args.batch}, {W}x{H} -> {R}x{R} | precision | reference ms/batch | "
+              f"new ms/batch | reference images/s | new images/s | new ÷ reference |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for name, mode, ref, new in eft_rows:
+            print(f"| {mode} | {name} | {ref:.0f} | {new:.0f} | {1000 * args.batch / ref:.3g} | "
+                  f"{1000 * args.batch / new:.3g} | {ref / new:.2f}× |")
+        print(f"(medians of {args.eft_steps} calls each, in two rounds of alternating blocks; "
+              f"ratio > 1: the new EFT is faster)")
 
     if args.eft_baseline:
         ours, base = bench_eft_baseline(batch, args, device, R)

@@ -1,5 +1,6 @@
 """Epipolar Feature Transformer: against a slow per-pixel loop reference (kept here), forward
-and backward, and on scenes with analytic answers."""
+and backward; the bags against the previous, sparse-matrix implementation (``reference=True``),
+pair for pair and output for output; and on scenes with analytic answers."""
 
 from __future__ import annotations
 
@@ -18,10 +19,13 @@ from sceneforge.learn.eft import (  # noqa: E402
     best_guess_height,
     epipolar_geometry,
     frustum_mask,
+    layer_points,
     point_hits,
     scale_intrinsics,
+    segment_pairs,
     transfer_surface,
     transfer_volume,
+    volume_bags,
 )
 from sceneforge.learn.train import TrainConfig  # noqa: E402
 from sceneforge.overhead import Box, OverheadCamera  # noqa: E402
@@ -159,11 +163,12 @@ def reference_zbuffer(inp, points):
 # ----------------------------------------------------------------- vs reference
 
 
+@pytest.mark.parametrize("reference", [False, True], ids=["bags", "sparse"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_volume_matches_loop_reference_forward_and_backward(seed):
+def test_volume_matches_loop_reference_forward_and_backward(seed, reference):
     inp = random_inputs(seed)
     F = torch.tensor(inp["feats"], requires_grad=True)
-    out = transfer_volume(F, inp["geom"], torch.tensor(inp["near"]), torch.tensor(inp["far"]))
+    out = transfer_volume(F, inp["geom"], torch.tensor(inp["near"]), torch.tensor(inp["far"]), reference=reference)
     grad_out = np.random.default_rng(seed + 100).normal(size=tuple(out.shape))
     out.backward(torch.tensor(grad_out))
     ref_out, ref_grad = reference_volume(inp, grad_out)
@@ -183,7 +188,7 @@ class _Counting:
         return self.fn(*args, **kw)
 
 
-def test_volume_builds_nothing_for_backward_under_no_grad(monkeypatch):
+def test_reference_volume_builds_nothing_for_backward_under_no_grad(monkeypatch):
     import sceneforge.learn.eft as eft
 
     inp = random_inputs(4)
@@ -192,24 +197,48 @@ def test_volume_builds_nothing_for_backward_under_no_grad(monkeypatch):
     monkeypatch.setattr(eft, "_csr", csr)
     monkeypatch.setattr(torch, "sort", sort)
     F = torch.tensor(inp["feats"], requires_grad=True)
-    with_grad = transfer_volume(F, inp["geom"], near, far)
+    with_grad = transfer_volume(F, inp["geom"], near, far, reference=True)
     assert with_grad.requires_grad and csr.calls == 1  # the backward's matrix, so the counter counts
     with torch.no_grad():
-        no_grad = transfer_volume(F, inp["geom"], near, far)
-    frozen = transfer_volume(F.detach(), inp["geom"], near, far)  # grad on, nothing to differentiate
+        no_grad = transfer_volume(F, inp["geom"], near, far, reference=True)
+    frozen = transfer_volume(F.detach(), inp["geom"], near, far, reference=True)  # nothing to differentiate
     assert (csr.calls, sort.calls) == (1, 0) and not no_grad.requires_grad and not frozen.requires_grad
     # one forward for both: the same pairs summed in the same order
     torch.testing.assert_close(no_grad, with_grad.detach(), atol=0, rtol=0)
     torch.testing.assert_close(frozen, no_grad, atol=0, rtol=0)
 
 
+def test_volume_builds_no_sparse_matrix_and_nothing_for_backward_under_no_grad(monkeypatch):
+    import sceneforge.learn.eft as eft
+
+    inp = random_inputs(4)
+    near, far = torch.tensor(inp["near"]), torch.tensor(inp["far"])
+    coo, csr = _Counting(torch.sparse_coo_tensor), _Counting(torch.sparse_csr_tensor)
+    backward = _Counting(eft.Bags.backward)
+    monkeypatch.setattr(torch, "sparse_coo_tensor", coo)
+    monkeypatch.setattr(torch, "sparse_csr_tensor", csr)
+    monkeypatch.setattr(eft.Bags, "backward", lambda bags, grad: backward(bags, grad))
+    F = torch.tensor(inp["feats"], requires_grad=True)
+    with_grad = transfer_volume(F, inp["geom"], near, far)
+    with torch.no_grad():
+        no_grad = transfer_volume(F, inp["geom"], near, far)
+    frozen = transfer_volume(F.detach(), inp["geom"], near, far)
+    assert with_grad.requires_grad and not no_grad.requires_grad and not frozen.requires_grad
+    assert backward.calls == 0  # the backward's bags are made by the backward
+    with_grad.sum().backward()
+    assert (coo.calls, csr.calls, backward.calls) == (0, 0, 1)
+    torch.testing.assert_close(no_grad, with_grad.detach(), atol=0, rtol=0)
+    torch.testing.assert_close(frozen, no_grad, atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("reference", [False, True], ids=["bags", "sparse"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_surface_matches_loop_reference_forward_and_backward(seed):
+def test_surface_matches_loop_reference_forward_and_backward(seed, reference):
     inp = random_inputs(seed)
     B, C, H, W = inp["feats"].shape
     points = np.stack([inp["near"], inp["far"]], axis=1)
     F = torch.tensor(inp["feats"], requires_grad=True)
-    out = transfer_surface(F, inp["geom"], torch.tensor(points))
+    out = transfer_surface(F, inp["geom"], torch.tensor(points), reference=reference)
     grad_out = np.random.default_rng(seed + 200).normal(size=tuple(out.shape))
     out.backward(torch.tensor(grad_out))
 
@@ -224,16 +253,152 @@ def test_surface_matches_loop_reference_forward_and_backward(seed):
     np.testing.assert_allclose(F.grad.numpy(), ref_grad, atol=1e-12)
 
 
-def test_best_guess_height_matches_loop_reference():
+@pytest.mark.parametrize("reference", [False, True], ids=["dense", "points"])
+def test_best_guess_height_matches_loop_reference(reference):
     inp = random_inputs(3)
     points = np.stack([inp["near"], inp["far"], inp["far"] + 0.3, inp["near"] * 0.5], axis=1)
-    got = best_guess_height(inp["geom"], torch.tensor(points)).numpy()
+    got = best_guess_height(inp["geom"], torch.tensor(points), reference=reference).numpy()
     ref = np.zeros(got.shape, dtype=np.float32)
     for (b, r, c), (z, _) in reference_zbuffer(inp, points).items():
         ref[b, 0, r, c] = inp["floor"][b] - z
     np.testing.assert_allclose(got, ref, atol=1e-6)
     assert got.dtype == np.float32
 
+
+# --------------------------------------------- the bags against the sparse reference
+
+
+def layers4(inp, seed):
+    """(B, 4, H, W) D1..D4 from the random segments: a second object behind the first on
+    about half the pixels, NaN elsewhere."""
+    rng = np.random.default_rng(seed + 300)
+    d3 = inp["far"] + rng.uniform(0.05, 1.0, inp["far"].shape)
+    d4 = d3 + rng.uniform(0.0, 1.5, d3.shape)
+    d3[rng.random(d3.shape) < 0.5] = np.nan
+    return torch.tensor(np.stack([inp["near"], inp["far"], d3, d4], axis=1))
+
+
+def frontal_features(seed, B, H, W, widths=(3, 5, 4), dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.randn(B, c, H, W, generator=g, dtype=dtype).requires_grad_(True) for c in widths]
+
+
+@pytest.mark.parametrize("max_samples", [7, 1 << 21], ids=["chunked", "whole"])
+@pytest.mark.parametrize("gating", ["volume", "surface"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_module_matches_the_reference_forward_and_backward(seed, gating, max_samples):
+    # long segments over a 40-pixel overhead image: many sample-count buckets; max_samples 7
+    # samples one entry at a time wherever a segment has more than 3 samples
+    inp = random_inputs(seed, B=3, H=18, W=24, R=40)
+    depth = layers4(inp, seed)
+    B, _, H_, W_ = depth.shape
+    config = EFTConfig(gating=gating, max_samples=max_samples)
+    rgb, df, sf = frontal_features(seed, B, H_, W_)
+    new = EpipolarFeatureTransformer(config, resolution=40)(rgb, df, sf, depth, inp["geom"])
+    ref = EpipolarFeatureTransformer(config, resolution=40, reference=True)(rgb, df, sf, depth, inp["geom"])
+    assert new.shape == ref.shape == (B, 2 + 2 * 12, 40, 40) and new.dtype == ref.dtype == torch.float64
+    assert (ref[:, 2:].abs().sum(dim=1) > 0).sum() > 500  # the transfers reach many pixels
+    torch.testing.assert_close(new, ref, atol=1e-12, rtol=0)
+    grad = torch.randn(new.shape, generator=torch.Generator().manual_seed(seed + 1), dtype=torch.float64)
+    for got, want in zip(torch.autograd.grad(new, (rgb, df, sf), grad),
+                         torch.autograd.grad(ref, (rgb, df, sf), grad)):
+        assert want.abs().sum() > 0
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("gating", ["volume", "surface"])
+def test_module_matches_the_reference_in_float32(gating):
+    inp = random_inputs(5, B=2, H=18, W=24, R=40)
+    depth = layers4(inp, 5)
+    rgb, df, sf = frontal_features(5, 2, 18, 24, widths=(3, 48, 64), dtype=torch.float32)
+    config = EFTConfig(gating=gating)
+    new = EpipolarFeatureTransformer(config, resolution=40)(rgb, df, sf, depth, inp["geom"])
+    ref = EpipolarFeatureTransformer(config, resolution=40, reference=True)(rgb, df, sf, depth, inp["geom"])
+    assert new.shape == (2, 232, 40, 40) and new.dtype == torch.float32
+    torch.testing.assert_close(new, ref, atol=1e-6, rtol=1e-5)
+    (new * ref.detach()).sum().backward()
+    got = [t.grad.clone() for t in (rgb, df, sf)]
+    for t in (rgb, df, sf):
+        t.grad = None
+    (ref * ref.detach()).sum().backward()
+    for g, t in zip(got, (rgb, df, sf)):
+        torch.testing.assert_close(g, t.grad, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("max_samples", [5, 1 << 21], ids=["chunked", "whole"])
+@pytest.mark.parametrize("samples_per_pixel", [1.0, 2.5, 0.3])
+def test_volume_bags_hold_exactly_the_reference_pairs(samples_per_pixel, max_samples):
+    inp = random_inputs(8, B=2, H=18, W=24, R=40)
+    depth = layers4(inp, 8)
+    geom, config = inp["geom"], EFTConfig(samples_per_pixel=samples_per_pixel, max_samples=max_samples)
+    segments = [(depth[:, 0], depth[:, 1]), (depth[:, 2], depth[:, 3])]
+    bags = volume_bags(geom, segments, config)
+    key = torch.repeat_interleave(bags.keys_hit, (bags.offsets[1:] - bags.offsets[:-1]).long())
+    got = torch.stack([key // bags.n_dst, bags.index.long(), key % bags.n_dst], dim=1)
+    want = torch.cat([torch.stack([torch.full_like(src, s), src, dst], dim=1)
+                      for s, (near, far) in enumerate(segments)
+                      for src, dst in [segment_pairs(geom, near, far, config)]])
+    assert len(got) == len(want) > 1000  # and so, with the sets equal, no pair twice
+    assert set(map(tuple, got.tolist())) == set(map(tuple, want.tolist()))
+    # the backward's view of the same pairs: grouped by ray segment, each ray's frontal pixel
+    entry = torch.repeat_interleave(bags.entry_src, (bags.entry_offsets[1:] - bags.entry_offsets[:-1]).long())
+    mirrored = torch.stack([bags.keys.long() // bags.n_dst, entry, bags.keys.long() % bags.n_dst], dim=1)
+    assert set(map(tuple, mirrored.tolist())) == set(map(tuple, want.tolist()))
+
+
+def test_layer_points_are_the_point_hits():
+    inp = random_inputs(9, B=2, H=12, W=16, R=24)
+    depth = layers4(inp, 9)
+    dst, z = layer_points(inp["geom"], depth)
+    src, dst_ref, z_ref = point_hits(inp["geom"], depth)
+    lands = dst < 2 * 24 * 24
+    assert 0 < lands.sum() < lands.numel()
+    np.testing.assert_array_equal(dst[lands].numpy(), dst_ref.numpy())
+    np.testing.assert_array_equal(z[lands].numpy(), z_ref.numpy())
+    assert torch.isinf(z[~lands]).all()
+
+
+def test_what_depends_only_on_the_cameras_is_computed_once_per_geometry(monkeypatch):
+    import sceneforge.learn.eft as eft
+
+    inp = random_inputs(10, B=2, H=6, W=8, R=12)
+    depth = layers4(inp, 10)
+    frustum = _Counting(eft._frustum_mask)
+    monkeypatch.setattr(eft, "_frustum_mask", frustum)
+    module = EpipolarFeatureTransformer(resolution=12)
+    first = module(*frontal_features(10, 2, 6, 8), depth, inp["geom"])
+    again = module(*frontal_features(11, 2, 6, 8), depth, inp["geom"])
+    assert frustum.calls == 1 and eft.ray_box(inp["geom"]) is eft.ray_box(inp["geom"])
+    torch.testing.assert_close(first[:, :2], again[:, :2], atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("gating", ["volume", "surface"])
+def test_no_segment_gives_zeros_and_zero_gradients(gating):
+    inp = random_inputs(11, B=2, H=6, W=8, R=12)
+    depth = torch.full((2, 4, 6, 8), torch.nan, dtype=torch.float64)
+    rgb, df, sf = frontal_features(11, 2, 6, 8)
+    out = EpipolarFeatureTransformer(EFTConfig(gating=gating), resolution=12)(rgb, df, sf, depth, inp["geom"])
+    assert (out[:, [0] + list(range(2, out.shape[1]))] == 0).all()
+    out.sum().backward()
+    assert all((t.grad == 0).all() for t in (rgb, df, sf))
+
+
+
+def test_the_output_has_the_memory_format_of_the_features():
+    # the trainer's nets are channels-last, and so the transfers write; contiguous otherwise
+    inp = random_inputs(12, B=2, H=6, W=8, R=12)
+    depth = layers4(inp, 12)
+    features = frontal_features(12, 2, 6, 8, dtype=torch.float32)
+    features_last = [t.detach().contiguous(memory_format=torch.channels_last).requires_grad_(True)
+                     for t in features]
+    module = EpipolarFeatureTransformer(resolution=12)
+    plain = module(*features, depth, inp["geom"])
+    last = module(*features_last, depth, inp["geom"])
+    assert plain.is_contiguous() and last.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(last, plain, atol=0, rtol=0)
+    grad = torch.randn(plain.shape, generator=torch.Generator().manual_seed(12))
+    for a, b in zip(torch.autograd.grad(plain, features, grad), torch.autograd.grad(last, features_last, grad)):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
 
 # --------------------------------------------------------------- analytic scenes
 
