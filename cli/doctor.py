@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import platform
 import time
 from dataclasses import dataclass
@@ -77,6 +78,26 @@ def check_cuda() -> Check:
     return Check("WARN", "torch CUDA", f"not available (torch {torch.__version__}): training runs on the CPU")
 
 
+def check_mitsuba() -> Check:
+    """The Mitsuba variant ``--rgb pathtraced`` runs on, and why: set up as path tracing does
+    (one tiny kernel, no rendering). Path tracing is optional: a warning without Mitsuba, or
+    where no variant runs."""
+    from sceneforge.render.pathtrace import INSTALL_MITSUBA, mitsuba_variant
+
+    if importlib.util.find_spec("mitsuba") is None:
+        return Check("WARN", "Mitsuba", "not installed: --rgb pathtraced needs it (--rgb raster does not)",
+                     INSTALL_MITSUBA)
+    try:
+        variant = mitsuba_variant()
+    except Exception as e:  # no variant runs, or a broken install: what path tracing would say
+        return Check("WARN", "Mitsuba", f"--rgb pathtraced will fail: {_first_line(e)}")
+    try:
+        version = metadata.version("mitsuba")
+    except metadata.PackageNotFoundError:
+        version = "unknown version"
+    return Check("PASS", "Mitsuba", f"{version}, {variant}")
+
+
 def check_rendering(gpu: int | None) -> list[Check]:
     """EGL devices, the OpenGL strings of a context, and one rendered frame of a toy house."""
     import numpy as np
@@ -138,7 +159,7 @@ def summary_line(checks: list[Check]) -> str:
               help="EGL device to render on. Default: $EGL_DEVICE_ID, else the first GPU, else Mesa's software device.")
 def doctor(gpu):
     """Check the installation: versions of the optional packages, the ray-tracing engine,
-    torch's CUDA, the EGL
+    torch's CUDA, the Mitsuba variant path tracing runs on (CUDA or LLVM, and why), the EGL
     devices and OpenGL driver, and one rendered frame of a bundled toy house. Prints one
     PASS, WARN or FAIL line per check (with what to install for each FAIL) and exits with
     status 3 when a check failed.
@@ -147,6 +168,7 @@ def doctor(gpu):
     checks += [check_package(*package) for package in PACKAGES]
     checks.append(check_tracer())
     checks.append(check_cuda())
+    checks.append(check_mitsuba())
     checks += check_rendering(gpu)
     colours = {"PASS": "green", "WARN": "yellow", "FAIL": "red"}
     for c in checks:

@@ -35,8 +35,13 @@ pass takes one sample per pixel (the view's seed + ``k`` in pass ``k``) and
 the passes are averaged in numpy in pass order, so no two samples ever race to add into
 one pixel. Across CPUs (LLVM) and GPUs (CUDA) results differ by floating-point rounding.
 
-Variant: ``cuda_ad_rgb`` when Mitsuba finds a CUDA GPU, else ``llvm_ad_rgb`` (Dr.Jit's LLVM
-backend, which needs a libLLVM shared library; ``scripts/system-deps.sh`` installs one).
+Variant: ``cuda_ad_rgb`` when it runs (an NVIDIA driver and GPU), else ``llvm_ad_rgb``
+(Dr.Jit's LLVM backend on the CPU, which needs a libLLVM shared library, 16 or newer;
+``scripts/system-deps.sh`` installs one). "Runs" is tested by setting the variant and
+evaluating one tiny kernel: a CUDA variant whose driver fails to initialise falls back to
+LLVM, and when neither runs the error gives both reasons. ``SCENEFORGE_MITSUBA_VARIANT``
+names the variant instead (no fallback). The seeds above do not depend on the variant.
+``sceneforge doctor`` prints the variant and why (:func:`mitsuba_variant`).
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ import glob
 import os
 import re
 import zlib
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -66,6 +72,11 @@ INSTALL_LLVM = "sudo apt-get install libllvm19 (LLVM 16 or newer), or set DRJIT_
 #: the oldest LLVM whose library Dr.Jit's kernels compile with (LLVM 14 and 15 abort the
 #: process: "Cannot select: fminimum")
 MIN_LLVM = 16
+#: the Mitsuba variants path tracing runs on, in the order they are tried (module docs)
+VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb")
+#: environment variable naming the one of :data:`VARIANTS` to run on, e.g. ``llvm_ad_rgb``
+#: to path-trace on the CPU where a GPU is present
+VARIANT_ENV = "SCENEFORGE_MITSUBA_VARIANT"
 #: light bounces of the path tracer
 MAX_DEPTH = 6
 #: samples per pixel when none is given
@@ -83,36 +94,86 @@ def newest_llvm() -> tuple[int, str] | None:
     return max(found, default=None)
 
 
+@dataclass(frozen=True)
+class Variant:
+    """The Mitsuba variant path tracing runs on (:func:`mitsuba_variant`) and why that one."""
+
+    name: str
+    #: e.g. ``"on NVIDIA H200"`` or ``"(no CUDA driver)"``
+    why: str
+
+    def __str__(self) -> str:
+        return f"{self.name} {self.why}".strip()
+
+
 @functools.cache
-def _mitsuba():
-    """Mitsuba with its variant set (module docs), imported on first use. Points Dr.Jit at
-    the newest libLLVM (it takes the first it finds, and an old one aborts the process)."""
+def _select() -> tuple[object, Variant]:
+    """Mitsuba with its variant set (module docs: the first of :data:`VARIANTS` that runs, or
+    the one ``SCENEFORGE_MITSUBA_VARIANT`` names) and that variant. Points Dr.Jit at the
+    newest libLLVM (it takes the first it finds, and an old one aborts the process, so the
+    LLVM variant is not even tried with one)."""
+    forced = os.environ.get(VARIANT_ENV, "").strip()
+    if forced and forced not in VARIANTS:
+        raise SceneforgeError(f"{VARIANT_ENV}={forced!r} names no variant sceneforge path-traces with; "
+                              f"choose {' or '.join(VARIANTS)}, or unset it")
+    no_llvm = None  # why the LLVM variant cannot run, known before trying it
     if not os.environ.get("DRJIT_LIBLLVM_PATH"):
         llvm = newest_llvm()
         if llvm is not None and llvm[0] >= MIN_LLVM:
             os.environ["DRJIT_LIBLLVM_PATH"] = llvm[1]
-        elif not _has_cuda():
-            have = f"LLVM {llvm[0]} is too old" if llvm else "no libLLVM found"
-            raise MissingDependencyError(f"libLLVM {MIN_LLVM}+", f"path-traced RGB on the CPU ({have})",
-                                         INSTALL_LLVM)
+        else:
+            no_llvm = f"LLVM {llvm[0]} is too old" if llvm else "no libLLVM found"
     try:
         import mitsuba as mi
     except ModuleNotFoundError as e:
         raise MissingDependencyError(e.name or "mitsuba", "path-traced RGB", INSTALL_MITSUBA) from None
-    errors = []
-    for variant in ("cuda_ad_rgb", "llvm_ad_rgb"):
+    failed: list[tuple[str, str]] = []  # (variant, why it does not run)
+    for variant in [forced] if forced else VARIANTS:
+        if variant == "llvm_ad_rgb" and no_llvm:
+            failed.append((variant, f"{no_llvm}, needs LLVM {MIN_LLVM}+"))
+            continue
         if variant not in mi.variants():
+            failed.append((variant, "not in this Mitsuba build"))
             continue
         try:
             mi.set_variant(variant)
             import drjit as dr
 
             dr.eval(mi.Float(0.0) + 1.0)  # a backend without its library fails only when used
-            return mi
         except (ImportError, RuntimeError, AttributeError) as e:
-            errors.append(f"{variant}: {str(e).splitlines()[0] if str(e) else type(e).__name__}")
-    raise MissingDependencyError("libLLVM", f"path-traced RGB (no Mitsuba variant runs: {'; '.join(errors)})",
-                                 INSTALL_LLVM)
+            cuda_missing = variant.startswith("cuda") and not _has_cuda()
+            failed.append((variant, "no CUDA driver" if cuda_missing else _first_line(e)))
+            continue
+        if forced:
+            why = f"({VARIANT_ENV})"
+        else:  # the CUDA variant failed before
+            why = "; ".join(r if r == "no CUDA driver" else f"{v}: {r}" for v, r in failed)
+            why = f"({why})" if why else ""
+        if variant.startswith("cuda"):
+            why = f"on {_cuda_device_name() or 'a CUDA GPU'}" + (f" {why}" if why else "")
+        return mi, Variant(variant, why)
+    reasons = "; ".join(f"{v}: {r}" for v, r in failed)
+    if forced:
+        raise SceneforgeError(f"path-traced RGB: {VARIANT_ENV}={forced}, which does not run here "
+                              f"({failed[0][1]}); unset it to take the first Mitsuba variant that runs")
+    raise MissingDependencyError(f"libLLVM {MIN_LLVM}+ (or a CUDA GPU)",
+                                 f"path-traced RGB (no Mitsuba variant runs: {reasons})", INSTALL_LLVM)
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def _mitsuba():
+    """Mitsuba with its variant set (:func:`_select`), imported on first use."""
+    return _select()[0]
+
+
+def mitsuba_variant() -> Variant:
+    """The Mitsuba variant ``--rgb pathtraced`` runs on here, and why (module docs); sets it
+    up as path tracing would, running one tiny kernel, and renders nothing. Raises
+    :class:`MissingDependencyError` where Mitsuba is not installed or no variant runs."""
+    return _select()[1]
 
 
 def _has_cuda() -> bool:
@@ -120,6 +181,22 @@ def _has_cuda() -> bool:
     import ctypes.util
 
     return ctypes.util.find_library("cuda") is not None
+
+
+def _cuda_device_name() -> str | None:
+    """The name of CUDA device 0 (Dr.Jit's default device), from the driver, or None."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        cuda = ctypes.CDLL(ctypes.util.find_library("cuda") or "libcuda.so.1")
+        device, name = ctypes.c_int(), ctypes.create_string_buffer(256)
+        if cuda.cuInit(0) or cuda.cuDeviceGet(ctypes.byref(device), 0) or \
+                cuda.cuDeviceGetName(name, 256, device):
+            return None
+    except (OSError, AttributeError):
+        return None
+    return name.value.decode(errors="replace") or None
 
 
 def mitsuba_sensor(camera: "Camera") -> dict:
