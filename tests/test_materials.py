@@ -136,3 +136,77 @@ def test_ply_colours_are_srgb_decoded_to_linear(element, tmp_path):
     got = inst.colors[0] if element == "vertex" else inst.material.base_color
     np.testing.assert_allclose(got, expected, rtol=1e-6)
     assert abs(expected[0] - 0.2158) < 1e-4
+
+
+def _gltf_two_primitives(tmp_path, second_material: int) -> "Path":
+    """A glTF mesh of two quads: primitive 0 with TEXCOORD_0 and material 0 (a texture),
+    primitive 1 without texture coordinates and material ``second_material``."""
+    import base64
+    import io
+
+    quad = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    idx = np.array([0, 1, 2, 0, 2, 3], np.uint16)
+    blob = quad.tobytes() + uv.tobytes() + idx.tobytes() + (quad + [0, 0, 1]).astype(np.float32).tobytes()
+    png = io.BytesIO()
+    Image.fromarray(np.full((2, 2, 3), (200, 100, 50), np.uint8)).save(png, format="PNG")
+    views = [(0, 48), (48, 32), (80, 12), (92, 48)]
+    doc = {
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"name": "table", "mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0},
+                                   {"attributes": {"POSITION": 3}, "indices": 2, "material": second_material}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}},
+                      {"pbrMetallicRoughness": {"baseColorFactor": [0.2, 0.3, 0.4, 1.0]}}],
+        "textures": [{"source": 0}],
+        "images": [{"uri": "data:image/png;base64," + base64.b64encode(png.getvalue()).decode()}],
+        "buffers": [{"byteLength": len(blob), "uri": "data:application/octet-stream;base64,"
+                     + base64.b64encode(blob).decode()}],
+        "bufferViews": [{"buffer": 0, "byteOffset": o, "byteLength": n} for o, n in views],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
+            {"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
+            {"bufferView": 3, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 1], "max": [1, 1, 1]},
+        ],
+    }
+    path = tmp_path / "scene.gltf"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("second", [1, 0])
+def test_gltf_primitive_without_uv_keeps_the_others_textures(tmp_path, second):
+    """One primitive without TEXCOORD_0 no longer takes the mesh's uv (and with them every
+    texture of it) away (issue 40); its own material shows without a texture, even one it
+    shares with a primitive that has uv."""
+    from sceneforge.houses.formats.gltf import read_gltf
+
+    (mesh,) = read_gltf(_gltf_two_primitives(tmp_path, second))
+    assert mesh.uv is not None and len(mesh.uv) == 8
+    np.testing.assert_array_equal(mesh.uv[4:], 0)
+    textured, other = mesh.materials
+    assert textured.texture is not None
+    assert other.texture is None
+    np.testing.assert_array_equal(mesh.face_material, [0, 0, 1, 1])
+    if second == 1:
+        assert other.base_color == (0.2, 0.3, 0.4, 1.0)
+
+
+def test_front3d_merged_pieces_keep_uv_of_the_pieces_that_have_them():
+    """3D-FRONT pieces merged into one instance (a room's wall pieces): uv where any piece has
+    them, the others' corners (0, 0) and their textures dropped (issue 40)."""
+    from pathlib import Path as _Path
+
+    from sceneforge.houses.formats.front3d import _merge, _Piece
+
+    wood = Material((1.0, 1.0, 1.0, 1.0), texture=_Path("wood.png"))
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    a = _Piece("wall", 1, "wall", "r", tri, np.array([[0, 1, 2]]), np.array([[0, 0], [1, 0], [0, 1]], float),
+               wood, _Path("x.json"), group=("r", "w"))
+    b = _Piece("wall", 1, "wall", "r", tri + 2, np.array([[0, 1, 2]]), None, wood, _Path("x.json"), group=("r", "w"))
+    merged = _merge([a, b])
+    assert merged.uv is not None and len(merged.uv) == 6
+    np.testing.assert_array_equal(merged.uv[3:], 0)
+    assert merged.material[0].texture == _Path("wood.png") and merged.material[1].texture is None
+    np.testing.assert_array_equal(merged.face_material, [0, 1])

@@ -465,3 +465,60 @@ def test_read_obj_polygons_negative_indices_and_uv_seams(tmp_path):
     np.testing.assert_array_equal(m.uv, [[0, 0], [1, 0], [1, 1], [0, 1], [1, 1], [0.5, 0.5]])
     assert [c.base_color for c in m.materials] == [(1.0, 0.0, 0.0, 1.0), (0.0, 0.0, 1.0, 0.5)]
     np.testing.assert_array_equal(m.face_material, [0, 0, 1, 1, 1])  # "a": the quad, "b": the rest
+
+
+# ---- models whose textured faces alone have uv (issue 40) -------------------------------
+
+#: SUNCG's object/274 (a wall cabinet) as it is made: the faces of its textured materials
+#: have texture coordinates (``f v/vt/vn``), those of its plain one none (``f v//vn``)
+CABINET_OBJ = ("mtllib cab.mtl\n"
+               "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 1 0 1\n"
+               "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\n"
+               "usemtl material_0\nf 1/1/1 2/2/1 3/3/1 4/4/1\n"
+               "usemtl material_1\nf 1//1 5//1 6//1 2//1\n")
+CABINET_MTL = ("newmtl material_0\nKd 0.64 0.64 0.64\nmap_Kd wood.png\n"
+               "newmtl material_1\nKd 0.36 0.36 0.36\n")
+
+
+def test_read_obj_keeps_uv_that_only_some_faces_have(tmp_path):
+    """Before, one face without uv dropped the mesh's uv, and with them every texture of it
+    (SUNCG's cabinet showed its wood white under ``replace``, +2 stops beside PBRS)."""
+    (tmp_path / "cab.obj").write_text(CABINET_OBJ)
+    (tmp_path / "cab.mtl").write_text(CABINET_MTL)
+    Image.fromarray(np.full((2, 2, 3), (160, 80, 40), np.uint8)).save(tmp_path / "wood.png")
+    m = read_obj(tmp_path / "cab.obj")
+    assert m.uv is not None and m.materials[0].texture == tmp_path / "wood.png"
+    np.testing.assert_array_equal(m.uv[:4], [[0, 0], [1, 0], [1, 1], [0, 1]])
+    np.testing.assert_array_equal(m.uv[4:6], [[0, 0], [0, 0]])  # corners without uv: (0, 0)
+    # a textured material none of whose faces has uv shows its colour (nothing places texels)
+    (tmp_path / "cab.mtl").write_text(CABINET_MTL + "map_Kd wood.png\n")
+    warnings = []
+    m = read_obj(tmp_path / "cab.obj", warnings.append)
+    assert m.materials[1].texture is None and m.materials[1].base_color == (0.36, 0.36, 0.36, 1.0)
+    assert m.materials[0].texture is not None
+    assert any("material_1" in w and "no texture coordinates" in w for w in warnings)
+
+
+def test_suncg_node_texture_shows_on_a_model_with_plain_faces_too(tmp_path):
+    """SUNCG's rule (module docs, SUNCGtoolbox ParseSUNCGMaterials): the node's entry i is the
+    model's i-th .mtl material; its texture shows where the model's faces have uv: the cabinet's textured face shows the node's texture, its plain face the node's diffuse
+    (the model as SUNCG ships it: uv on its textured faces only)."""
+    doc = _hand_doc()
+    doc["levels"][0]["nodes"][1].update(modelId="cab", materials=[{"texture": "wood_4"}, {"diffuse": "#5b5b5b"}])
+    path = _write_root(tmp_path, doc, {**_hand_files(), "object/cab/cab.obj": CABINET_OBJ,
+                                       "object/cab/cab.mtl": CABINET_MTL},
+                       ROWS + [("cab", "wardrobe_cabinet", "cabinet")])
+    Image.fromarray(np.full((2, 2, 3), 255, np.uint8)).save(tmp_path / "object" / "cab" / "wood.png")
+    (tmp_path / "texture").mkdir()
+    Image.fromarray(np.full((2, 2, 3), (164, 83, 47), np.uint8)).save(tmp_path / "texture" / "wood_4.png")
+    cab = _by_name(load(path), "Object#0_1")
+    assert cab.uv is not None
+    wood, plain = cab.materials
+    assert wood.texture == tmp_path / "texture" / "wood_4.png" and wood.base_color == (1.0, 1.0, 1.0, 1.0)
+    assert plain.texture is None and plain.base_color == pytest.approx((0x5b / 255,) * 3 + (1.0,))
+    from sceneforge.render.raster import house_batches
+
+    # what both renderers draw: the wood batch with its texture and uv (before: no uv, the
+    # texture dropped, its white base colour drawn)
+    batches = [b for b in house_batches(load(path)) if b.material.texture is not None]
+    assert any(b.material.texture.name == "wood_4.png" and b.uv is not None for b in batches)

@@ -647,13 +647,24 @@ def _merge(pieces: list[_Piece]) -> _Piece:
     face groups."""
     offsets = np.cumsum([0] + [len(p.vertices) for p in pieces[:-1]])
     materials, face_material = [], []
+
+    def own_of(p: _Piece) -> tuple[Material, ...]:
+        return p.material if isinstance(p.material, tuple) else (p.material or Material(),)
+
     for p in pieces:
-        own = p.material if isinstance(p.material, tuple) else (p.material or Material(),)
+        own = own_of(p)
         index = p.face_material if p.face_material is not None else np.zeros(len(p.faces), np.int32)
         face_material.append(index + len(materials))
         materials += own
     first = pieces[0]
-    uv = None if any(p.uv is None for p in pieces) else np.concatenate([p.uv for p in pieces])
+    # uv when any piece has them (the others' corners (0, 0), their textures dropped: nothing
+    # places them), so that one piece without uv does not take the others' textures (issue 40)
+    uv = None
+    if any(p.uv is not None for p in pieces):
+        uv = np.concatenate([p.uv if p.uv is not None else np.zeros((len(p.vertices), 2)) for p in pieces])
+        materials = [replace(m, texture=None) if m.texture is not None and pieces[k].uv is None else m
+                     for k, m in zip(np.repeat(np.arange(len(pieces)), [len(own_of(p)) for p in pieces]),
+                                     materials, strict=True)]
     return replace(first, name=f"{first.label or 'mesh'}#{first.group[1]}",
                    vertices=np.concatenate([p.vertices for p in pieces]),
                    faces=np.concatenate([p.faces + o for p, o in zip(pieces, offsets)]), uv=uv,

@@ -14,6 +14,8 @@ fallback when an image is missing, e.g. the ``.dds`` files of ``MSFT_texture_dds
 
 glTF's ``v`` runs down the image; sceneforge's uv follow OBJ/OpenGL (``v = 0`` at the
 bottom row), so ``v`` is flipped on the way in (and out, in :mod:`sceneforge.testing.gltf`).
+A merged mesh has uv when any of its primitives has ``TEXCOORD_0``; the corners of the
+others get (0, 0) and their materials show without a texture (nothing places one there).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import io
 import json
 import struct
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from urllib.parse import unquote
 
@@ -358,13 +361,22 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
             offsets = np.cumsum([0] + [len(g[0]) for _, g in parts])
             vertices = np.concatenate([g[0] for _, g in parts])
             faces = np.concatenate([g[1] + o for (_, g), o in zip(parts, offsets[:-1], strict=True)])
-            uv = np.concatenate([g[2] for _, g in parts]) if all(g[2] is not None for _, g in parts) else None
+            # uv when any primitive has them (the others' corners (0, 0)): a primitive without
+            # TEXCOORD_0 does not take the other primitives' textures away (issue 40); its own
+            # material shows without its texture, which nothing places
+            uv = None
+            if any(g[2] is not None for _, g in parts):
+                uv = np.concatenate([g[2] if g[2] is not None else np.zeros((len(g[0]), 2)) for _, g in parts])
             colors = None
             if any(g[3] is not None for _, g in parts):
                 colors = np.concatenate([g[3] if g[3] is not None else np.ones((len(g[0]), 4)) for _, g in parts])
-            keys = list(dict.fromkeys(p.get("material") for p, _ in parts))
-            materials = tuple(gltf.material(key) for key in keys)
-            face_material = np.concatenate([np.full(len(g[1]), keys.index(p.get("material")), np.int32)
+
+            def key_of(p, g):
+                return p.get("material"), uv is not None and g[2] is None
+
+            keys = list(dict.fromkeys(key_of(p, g) for p, g in parts))
+            materials = tuple(_untextured(gltf.material(key)) if bare else gltf.material(key) for key, bare in keys)
+            face_material = np.concatenate([np.full(len(g[1]), keys.index(key_of(p, g)), np.int32)
                                             for p, g in parts])
             vertices, faces = place(vertices, faces, world)
             yield Mesh(vertices, faces, uv, materials[0] if len(materials) == 1 else materials, node_name,
@@ -373,3 +385,8 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         raise MeshFileError(f"malformed glTF ({type(e).__name__}: {e})") from None
+
+
+def _untextured(material: Material) -> Material:
+    """``material`` without its texture (faces without texture coordinates)."""
+    return material if material.texture is None else replace(material, texture=None)

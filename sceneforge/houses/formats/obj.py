@@ -7,9 +7,16 @@ rest (normals, lines, smoothing groups):
   count from 1; negative ones count back from the last vertex (texture coordinate) defined
   so far. A texture index 0 or none (``f 1//1``) means the corner has no uv.
 - Texture coordinates follow OBJ/OpenGL: ``v = 0`` is the bottom row of the image. A mesh
-  has uv only when every corner of its faces has one. A vertex used with several texture
-  coordinates keeps its first; every further (vertex, texture coordinate) pair becomes a
-  new vertex after the others (a uv seam), so vertices keep their file order.
+  has uv when any corner of its faces has one: models often give them only to the faces of
+  their textured materials (SUNCG: ``f 1/1/1`` under a ``map_Kd`` material, ``f 1//1``
+  under a plain one), and dropping the mesh's uv for that showed every texture of it as a
+  flat colour (a wardrobe +2 stops too bright beside PBRS, issue 40). A corner without one
+  gets (0, 0); in a mesh with uv, a face group whose material has a texture but none of
+  whose corners has uv shows the material's colour without it (with a warning), as nothing
+  says where its texels go (a mesh without any uv keeps its materials as they are: the
+  renderers draw a texture only with uv). A vertex used with several texture coordinates
+  keeps its first; every further (vertex, texture coordinate) pair becomes a new vertex
+  after the others (a uv seam), so vertices keep their file order.
 - Materials come from the ``mtllib`` files: ``Kd``, ``d`` (or ``Tr``) and ``map_Kd``
   (options before the image name are skipped; a missing image may be replaced by its
   ``.png``/``.jpg`` twin). A mesh keeps every material its faces name with ``usemtl``, as
@@ -28,7 +35,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -341,17 +348,24 @@ def _face(rest: str, nv: int, nvt: int, line: int, i: int):
 def _mesh(obj: _Obj, triangles: np.ndarray, name: str, vertices: np.ndarray, faces: np.ndarray,
           warn: Warn) -> Mesh:
     """The mesh of some of ``obj``'s triangles (indices (m,)), given as ``faces`` (m, 3) into
-    ``vertices`` (n, 3): uv when every corner has one, a face group per material."""
+    ``vertices`` (n, 3): uv when any corner has one, a face group per material."""
     tex = obj.tri_t[triangles]
     uv = None
-    if len(obj.uvs) and len(tex) and (tex != _NO_UV).all():
-        bad = (tex < 0) | (tex >= len(obj.uvs))
+    has_uv = (tex != _NO_UV).any(axis=1) if len(tex) else np.zeros(0, dtype=bool)
+    if len(obj.uvs) and has_uv.any():
+        bad = ((tex < 0) | (tex >= len(obj.uvs))) & (tex != _NO_UV)
         if bad.any():
             row = np.flatnonzero(bad.any(axis=1))[0]
             raise MeshFileError(
                 f"line {obj.f_lines[obj.tri_line[triangles[row]]]}: texture index "
                 f"{int(tex[row][bad[row]][0]) + 1} is outside the {len(obj.uvs)} texture coordinates")
-        vertices, faces, uv = _split_seams(vertices, faces, tex, obj.uvs)
+        uvs = obj.uvs
+        if (tex == _NO_UV).any():  # corners without uv: (0, 0), one extra texture coordinate
+            uvs = np.concatenate([obj.uvs, np.zeros((1, 2))])
+            tex = np.where(tex == _NO_UV, len(obj.uvs), tex)
+        vertices, faces, uv = _split_seams(vertices, faces, tex, uvs)
+    else:
+        has_uv[:] = False
     # one face group per usemtl name its faces use, in order of first use; faces before any
     # usemtl (or naming a material no library has) get the default material
     named = obj.line_mtl[obj.tri_line[triangles]]
@@ -367,6 +381,11 @@ def _mesh(obj: _Obj, triangles: np.ndarray, name: str, vertices: np.ndarray, fac
         material = obj.materials.get(obj.mtl_names[code]) if code >= 0 else None
         if code >= 0 and material is None:
             warn(f"material {obj.mtl_names[code]!r} is not in any material library; default colour")
+        if material is not None and material.texture is not None and uv is not None \
+                and not has_uv[named == code].any():
+            warn(f"material {obj.mtl_names[code]!r} has a texture but its faces no texture "
+                 "coordinates; its colour without the texture")
+            material = replace(material, texture=None)
         materials.append(material or Material())
         names.append(obj.mtl_names[code] if code >= 0 else "")
     if len(materials) == 1:

@@ -215,10 +215,12 @@ class _Reader:
     def add(self, name, category, label, room_id, mesh: Mesh, matrix, file, material=None):
         v, f = place(mesh.vertices, mesh.faces, matrix)
         args = {"material": material} if material is not None else mesh.instance_args()
-        if self.textures == "replace" and args["material"] is not None:
-            given = args["material"]
-            args["material"] = (tuple(map(_texture_alone, given)) if isinstance(given, tuple)
-                                else _texture_alone(given))
+        given = args["material"]
+        if given is not None and (self.textures == "replace" or mesh.uv is None):
+            # without uv no texture shows (the raster and path tracer would draw a textured
+            # material's colour alone: white under ``replace``), so such a material keeps Kd
+            alone = _texture_alone if mesh.uv is not None else _without_texture
+            args["material"] = tuple(map(alone, given)) if isinstance(given, tuple) else alone(given)
         make_instance(self.house, name=name, category=category, label=label, room_id=room_id,
                       vertices=v, faces=f, uv=mesh.uv, file=file, **args)
 
@@ -334,6 +336,11 @@ def _texture_alone(material: Material) -> Material:
     if material.texture is None:
         return material
     return replace(material, base_color=(1.0, 1.0, 1.0, material.base_color[3]))
+
+
+def _without_texture(material: Material) -> Material:
+    """``material`` showing its colour (``Kd``, or a node's ``diffuse``): for a mesh without uv."""
+    return material if material.texture is None else replace(material, texture=None)
 
 
 def _node_material(node: dict) -> Material | None:
