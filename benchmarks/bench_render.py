@@ -19,13 +19,22 @@ In one run on the same scenes and cameras:
   320×240, whose difference is the rasteriser's (on Mesa's llvmpipe: CPU threads).
 - ``--figure PNG``: one view of the breakfast room in each mode side by side (docs/rgb.md's),
   with the fraction of its pixels clipped to white.
+- ``--per-pixel`` (and nothing else): the raster mode's per-pixel cost before and after
+  issue 39's item 2, in one run: ms per frame at 8×6, 320×240, 640×480 and 1280×960 of the
+  toy house and the breakfast room, and the difference 1280×960 − 8×6, for three renderers
+  measured in turns, one at a time (the machine is shared; the best pass counts): ``before`` (pyrender's
+  light loops, which Mesa unrolls, the float radiance read back and tone-mapped with numpy),
+  ``loops`` (the light loops fixed, numpy tone mapping: ``gpu_tonemap=False``) and ``after``
+  (tone mapping in GL passes, bytes read back: the default).
 
     python benchmarks/bench_render.py [--views 3] [--frames 500] [--pt-frames 20] [--samples 64]
+    python benchmarks/bench_render.py --per-pixel [--views 3] [--repeats 5]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import gc
 import time
@@ -37,7 +46,8 @@ from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.cameras import look_at_camera
 from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
 from sceneforge.raytrace import HouseTracer
-from sceneforge.render import RenderConfig, open_renderer
+from sceneforge.render import RenderConfig, Renderer, open_renderer
+from sceneforge.render import raster
 
 BREAKFAST = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
 WIDTH, HEIGHT = 320, 240
@@ -105,6 +115,71 @@ def raster_split(scenes, repeats: int) -> list[float]:
                 best = min(best, time.perf_counter() - start)
             out.append(1e3 * best / len(small))
     return out
+
+
+@contextlib.contextmanager
+def unrolled_light_loops():
+    """Renderers made inside draw with the mesh shader as it was before issue 39 (item 2):
+    pyrender's light loops as they are, which Mesa unrolls (``raster._LOOP_PATCHES`` left out)."""
+    saved = raster._LOOP_PATCHES
+    raster._LOOP_PATCHES = ()
+    raster._mesh_shader.cache_clear()
+    try:
+        yield
+    finally:
+        raster._LOOP_PATCHES = saved
+        raster._mesh_shader.cache_clear()
+
+
+#: the renderers of ``--per-pixel``: name → (unrolled light loops, gpu_tonemap)
+PER_PIXEL_PATHS = {"before": (True, False), "loops": (False, False), "after": (False, True)}
+PER_PIXEL_SIZES = ((8, 6), (320, 240), (640, 480), (1280, 960))
+
+
+def per_pixel(scenes, repeats: int, rounds: int = 3) -> dict[str, dict[str, dict[tuple[int, int], dict[str, float]]]]:
+    """clock (``wall``, ``cpu``: this process's CPU time, llvmpipe's threads included) →
+    scene → size → path → raster ms per frame (``render``: RGB bytes), the best of
+    ``repeats`` passes over the scene's views in each of ``rounds`` rounds; each round makes
+    a renderer of each path in turn (in alternating order), one at a time as a worker has
+    it (with several EGL contexts alive, llvmpipe's frames of one slow down by up to 10 ms
+    depending on the order the others were made in). On a shared machine the CPU time is
+    the steadier measure of the work; the wall clock is what a worker waits."""
+    out = {"wall": {}, "cpu": {}}
+    paths = list(PER_PIXEL_PATHS)
+    for name, house, cameras in scenes:
+        for clock in out.values():
+            clock[name] = {}
+        for W, H in PER_PIXEL_SIZES:
+            views = [c.resized(W, H) for c in cameras]
+            best = {clock: dict.fromkeys(paths, float("inf")) for clock in out}
+            for k in range(rounds):
+                for path in paths if k % 2 == 0 else paths[::-1]:
+                    unrolled, gpu_tonemap = PER_PIXEL_PATHS[path]
+                    with unrolled_light_loops() if unrolled else contextlib.nullcontext():
+                        r = Renderer(W, H, gpu_tonemap=gpu_tonemap)
+                    with r:
+                        r.render(house, views[0])  # the scene build
+                        for _ in range(repeats):
+                            wall, cpu = time.perf_counter(), time.process_time()
+                            for c in views:
+                                r.render(house, c)
+                            best["wall"][path] = min(best["wall"][path], time.perf_counter() - wall)
+                            best["cpu"][path] = min(best["cpu"][path], time.process_time() - cpu)
+            for clock, times in best.items():
+                out[clock][name][W, H] = {path: 1e3 * t / len(views) for path, t in times.items()}
+    return out
+
+
+def print_per_pixel(times, clock: str) -> None:
+    paths = list(PER_PIXEL_PATHS)
+    (w0, h0), (w1, h1) = PER_PIXEL_SIZES[0], PER_PIXEL_SIZES[-1]
+    for name, by_size in times.items():
+        print(f"\n{name + ', ' + clock:<24}" + "".join(f"{p:>10}" for p in paths) + f"{'before / after':>16}")
+        for (W, H), t in by_size.items():
+            print(f"  {f'{W}×{H}':<22}" + "".join(f"{t[p]:>10.1f}" for p in paths))
+        cost = {p: by_size[w1, h1][p] - by_size[w0, h0][p] for p in paths}
+        print(f"  {f'{w1}×{h1} − {w0}×{h0}':<22}" + "".join(f"{cost[p]:>10.1f}" for p in paths)
+              + f"{cost['before'] / cost['after']:>15.2f}×")
 
 
 def time_mode(mode: str, scenes, repeats: int, samples: int) -> list[tuple[float, float]]:
@@ -185,6 +260,8 @@ def main():
     parser.add_argument("--modes", default="raster,raster+shadows,pathtraced",
                         help="modes to measure, comma-separated (raster+shadows: timing only)")
     parser.add_argument("--figure", type=Path, default=None, help="also write the side-by-side figure here")
+    parser.add_argument("--per-pixel", action="store_true",
+                        help="only the raster per-pixel cost before/after issue 39 item 2 (8×6 to 1280×960)")
     args = parser.parse_args()
     modes = args.modes.split(",")
 
@@ -192,6 +269,18 @@ def main():
     with open_renderer("raster", 8, 8) as probe:
         info = probe.gl_info()
         print(f"raster: EGL device {probe.device.index} ({probe.device.kind}), {info['renderer']}")
+    if args.per_pixel:
+        scenes = [s for s in scenes if s[1].id != "million"]
+        print("scenes: " + ", ".join(f"{n} ({h.triangle_count:,} triangles, {len(c)} views)" for n, h, c in scenes))
+        print(f"best of {args.repeats} passes over each scene's views in each of 3 rounds; "
+              "a renderer of each path in turn, one at a time")
+        print("raster, ms per frame (RGB bytes); before: pyrender's light loops (unrolled by Mesa), float readback, "
+              "numpy tone mapping; loops: light loops fixed, numpy tone mapping; after: tone mapping in GL, bytes "
+              "read back")
+        times = per_pixel(scenes, args.repeats)
+        print_per_pixel(times["wall"], "wall clock")
+        print_per_pixel(times["cpu"], "CPU time")
+        return
     if "pathtraced" in modes:
         with open_renderer("pathtraced", 8, 8) as probe:
             print(f"pathtraced: Mitsuba variant {probe.variant}, {args.samples} samples per pixel")

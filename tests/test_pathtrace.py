@@ -213,7 +213,32 @@ def test_window_is_an_area_light_of_the_sky(mi):
     with open_renderer("pathtraced", 80, 60, samples=4, config=config, denoise=False) as r:
         radiance, seen = r.render_linear(house, camera)
     centre = radiance[28:32, 38:42]
-    np.testing.assert_allclose(centre, 700.0, rtol=1e-5)  # every sample sees the emitter
+    daylight = np.asarray(house_lights(house, config)[0].colour)  # the outdoors' mean colour
+    np.testing.assert_allclose(centre, np.broadcast_to(700.0 * daylight, centre.shape), rtol=1e-5)  # every sample sees the emitter
+    assert seen.all() and (radiance[55:] > 0).all()  # the floor is lit
+
+
+def test_the_outdoors_lights_the_room_through_a_windows_glass(mi):
+    """A window with glass (SUNCG's: a face group of opacity < 1): its glass is left out and
+    the outdoors' dome (``render.sky``) shows through it and lights the room, as in the
+    raster mode; the window is no emitter panel then."""
+    from sceneforge.houses import make_instance
+    from sceneforge.render import RenderConfig, sky
+
+    house, camera = lamp_and_window_room(window=False)
+    house.instances = [i for i in house.instances if i.name != "lamp" and not i.name.startswith("wall")]
+    window = make_instance(house, name="window", category=9, label="window", room_id="r0",
+                           vertices=[[-2.0, 0.5, -1], [-2.0, 0.5, 1], [-2.0, 2.5, 1], [-2.0, 2.5, -1]],
+                           faces=[[0, 1, 2], [0, 2, 3]], material=Material((0.4, 0.55, 0.64, 0.5)))
+    camera = camera.__class__(camera.K, pose_from_view([0.5, 1.5, 0.0], [-1.0, 0.0, 0.0]), 80, 60)
+    config = RenderConfig(sky_luminance=700.0)
+    with open_renderer("pathtraced", 80, 60, samples=4, config=config, denoise=False) as r:
+        radiance, seen = r.render_linear(house, camera)
+        scene = r._scene
+    assert "sky" in {s.id() for s in scene.shapes()} and window.id is not None
+    origins, directions, _ = camera.rays()
+    expected = sky.radiance(directions.reshape(60, 80, 3)[28:32, 38:42]) * 700.0
+    np.testing.assert_allclose(radiance[28:32, 38:42], expected, rtol=0.1)  # through the glass
     assert seen.all() and (radiance[55:] > 0).all()  # the floor is lit
 
 
@@ -260,6 +285,28 @@ def test_denoiser_lowers_noise_on_a_flat_lit_wall(mi):
             frames[denoise] = r.render(house, camera)
     noisy, clean = wall_noise(frames[False], region), wall_noise(frames[True], region)
     assert noisy > 2 and clean < noisy / 3, (noisy, clean)
+
+
+def test_grain_keeps_a_fraction_of_the_samples_noise(mi):
+    """``RenderConfig.grain``: denoised + grain × (raw − denoised), so 1 is the raw frame and
+    0 the denoised one; the default 5 % leaves a little grain (PBRS's renders show theirs)."""
+    from sceneforge.render import RenderConfig
+
+    house = box_room("room", size=4.0, height=3.0)
+    camera = Camera(default_intrinsics(80, 60), pose_from_view([0.0, 1.5, -1.0], [0.0, 0.0, 1.0]), 80, 60)
+    wall = np.abs(frontal_layers(house, camera).depth[4] - 3.0) < 1e-6
+    region = ndimage.binary_erosion(wall, iterations=3)
+    with open_renderer("pathtraced", 80, 60, samples=8, denoise=False) as r:
+        raw, _ = r.render_linear(house, camera)
+    frames = {}
+    for grain in (0.0, 0.05, 1.0):
+        with open_renderer("pathtraced", 80, 60, samples=8, config=RenderConfig(grain=grain)) as r:
+            frames[grain], _ = r.render_linear(house, camera)
+    np.testing.assert_allclose(frames[1.0], raw, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(frames[0.05], frames[0.0] + 0.05 * (raw - frames[0.0]), rtol=1e-9, atol=1e-9)
+    assert RenderConfig().grain == 0.05
+    with pytest.raises(ValueError, match="grain"):
+        RenderConfig(grain=1.5)
 
 
 def test_denoiser_keeps_label_edges_where_they_are(mi):

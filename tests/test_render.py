@@ -37,8 +37,9 @@ from sceneforge.render import (
     room_lights,
     tonemap,
 )
-from sceneforge.render.lights import WINDOW_CONE, room_ambient
-from sceneforge.render.tonemap import KEY, aces, auto_exposure
+from sceneforge.render.lights import WINDOW_CONE, room_albedo, room_ambient
+from sceneforge.render.sky import window_colour
+from sceneforge.render.tonemap import KEY, aces, auto_exposure, encode, encoding_thresholds
 
 from .conftest import BREAKFAST_ROOM, box_instance, box_room, needs_shared
 
@@ -331,7 +332,10 @@ def test_per_pixel_light_is_lambert_over_distance_squared_from_either_side():
     (ambient,) = room_ambient(house, config).values()
     size = np.ptp(np.concatenate([i.vertices for i in house.instances]), axis=0)
     area = 2 * (size[0] * size[1] + size[1] * size[2] + size[0] * size[2])
-    np.testing.assert_allclose(ambient, 0.2 * 600.0 / area)
+    rho = room_albedo(house)["a"]  # the grey floor and a speck of white marker
+    assert rho == pytest.approx(0.6, abs=1e-4)
+    np.testing.assert_allclose(ambient, [0.2 * 600.0 / area * rho / (1 - rho)] * 3)  # white: a lamp's
+    ambient = ambient[0]
     seen, points = floor_points(house, floor, camera)
     to_light = light.position - points
     d2 = (to_light ** 2).sum(1)
@@ -370,12 +374,17 @@ def test_window_is_a_lambertian_panel_of_sky_light():
     cos_window = (light.direction @ -to_light.T) / d
     cos_floor = to_light[:, 1] / d
     lit = cos_window > np.cos(WINDOW_CONE)
+    # of the outdoors' colour (luminance 1, daylight: bluer than white)
+    colour = np.asarray(light.colour)
+    np.testing.assert_allclose(colour, window_colour())
+    assert colour @ [0.2126, 0.7152, 0.0722] == pytest.approx(1.0) and colour[2] > colour[1] > colour[0]
     expected = 0.6 / np.pi * 800.0 * 0.6 * np.where(lit, cos_window, 0) * cos_floor / np.maximum(d, 0.3) ** 2
     with Renderer(64, 48, config=config) as r:
         radiance, _ = r.render_linear(house, camera)
     assert on_window.sum() > 10 and lit.mean() > 0.5
-    np.testing.assert_allclose(radiance[seen][:, 0], expected, rtol=2e-3, atol=1e-3)
-    assert (radiance[on_window][:, 0] >= 800.0).all()  # its own radiance (and the little it reflects)
+    np.testing.assert_allclose(radiance[seen], expected[:, None] * colour, rtol=2e-3, atol=1e-3)
+    # its own radiance (and the little it reflects)
+    assert (radiance[on_window] >= 800.0 * colour * (1 - 1e-6)).all()
 
 
 def test_window_shadows():
@@ -470,6 +479,73 @@ def test_tone_curve():
         assert np.abs(fast - reference).max() <= 1 and (fast == reference).mean() > 0.999
 
 
+def test_encoding_thresholds_count_to_the_byte():
+    """The sRGB encoding as the GPU pass evaluates it, the number of thresholds at or below y,
+    is :func:`encode`'s byte: on each side of every threshold and on a million random values."""
+    thresholds = encoding_thresholds()
+    assert thresholds.dtype == np.float32 and thresholds.shape == (255,) and (np.diff(thresholds) > 0).all()
+    near = (thresholds.view(np.uint32)[:, None] + np.arange(-300, 300, dtype=np.int64)).astype(np.uint32).view(np.float32)
+    y = np.concatenate([near.ravel(), np.random.default_rng(0).random(1_000_000, dtype=np.float32), [0.0, 1.0]])
+    y = y[(y >= 0) & (y <= 1)].astype(np.float32)
+    np.testing.assert_array_equal(np.searchsorted(thresholds, y, side="right"), encode(y))
+
+
+#: (config, antialias) of the GPU tone-mapping check: auto and fixed exposure, either curve,
+#: a background colour, shadow maps, 4× multisampling
+GPU_TONE_CASES = {
+    "auto": (RenderConfig(), False),
+    "fixed": (RenderConfig(exposure=0.02), False),
+    "clip, background": (RenderConfig(tone="clip", background=(0.2, 0.5, 1.0)), False),
+    "fixed clip, background": (RenderConfig(exposure=0.01, tone="clip", background=(1.0, 0.25, 0.0)), False),
+    "shadows, antialias": (RenderConfig(shadows=True), True),
+}
+#: the most channel values of the GPU pass that may differ (by one level) from numpy's
+GPU_TONE_DIFFERING = 1e-3
+
+
+@pytest.mark.parametrize("case", GPU_TONE_CASES)
+def test_gpu_tone_mapping_gives_numpys_bytes(case, toy_houses):
+    """``render`` (exposure, tone curve and sRGB encoding in GL passes, bytes read back) is
+    ``tonemap(render_linear(...))`` to within a level in at most 0.1 % of the channel values
+    (on llvmpipe: none), at an odd width (rows of bytes not a multiple of 4); an exposure
+    1 % off would change far more, and ``gpu_tonemap=False`` is numpy's own."""
+    config, antialias = GPU_TONE_CASES[case]
+    W, H = 161, 121
+    diffs, off_by_1_percent = [], []
+    with Renderer(W, H, config=config, antialias=antialias) as r, \
+            Renderer(W, H, config=config, antialias=antialias, gpu_tonemap=False) as reference:
+        for house, _, camera in toy_views(toy_houses):
+            camera = camera.resized(W, H)
+            rgb = r.render(house, camera)
+            radiance, seen = r.render_linear(house, camera)
+            expected = tonemap(radiance, seen, exposure=config.exposure, tone=config.tone, background=config.background)
+            assert rgb.dtype == np.uint8 and rgb.shape == (H, W, 3) and rgb.flags.c_contiguous
+            np.testing.assert_array_equal(reference.render(house, camera), expected)
+            diffs.append(np.abs(rgb.astype(int) - expected).ravel())
+            exposure = auto_exposure(np.nan_to_num(radiance), seen) if config.exposure is None else config.exposure
+            off = tonemap(radiance, seen, exposure=1.01 * exposure, tone=config.tone, background=config.background)
+            off_by_1_percent.append((off != expected).ravel())
+    diff = np.concatenate(diffs)
+    assert diff.max() <= 1, f"{case}: a channel value is {diff.max()} levels off"
+    assert (diff > 0).mean() <= GPU_TONE_DIFFERING, f"{case}: {100 * (diff > 0).mean():.3f} % of values differ"
+    assert np.concatenate(off_by_1_percent).mean() > 20 * GPU_TONE_DIFFERING
+
+
+def test_gpu_auto_exposure_falls_back_to_the_mean():
+    """Most of the view black (a black slab in front, flat light): the median luminance is 0,
+    and the GPU path exposes by the mean of the seen pixels as numpy does (same order, same sum)."""
+    house = boxed_room()
+    box_instance(house, "slab", 1, (1.6, 3.0, 0.2), (-0.2, 1.5, 0.0)).materials = (Material((0.0, 0.0, 0.0, 1.0)),)
+    camera = look_at_camera([0.0, 1.5, -1.2], [0.1, -0.1, 1.0], width=64, height=48)
+    with Renderer(64, 48, config=RenderConfig(flat=True)) as r:
+        rgb = r.render(house, camera)
+        radiance, seen = r.render_linear(house, camera)
+    luminance = (radiance @ np.float32([0.2126, 0.7152, 0.0722]))[seen]
+    assert np.median(luminance) == 0 < luminance.mean() and seen.all()
+    np.testing.assert_array_equal(rgb, tonemap(radiance, seen))
+    assert (rgb.max(-1) > 0).mean() > 0.05
+
+
 def test_a_room_is_lit_by_its_own_lights_only():
     """A lamp of another room, even one standing inside this room's bounds (behind the
     camera), changes no pixel: a room's geometry sees only its own room's lights."""
@@ -483,6 +559,33 @@ def test_a_room_is_lit_by_its_own_lights_only():
         after = r.render(house, camera)
     assert camera.project([[0.0, 1.5, -1.8]])[1][0] <= 0  # behind the camera: not in the image
     np.testing.assert_array_equal(after, before)
+
+
+def test_a_room_drawn_twice_looks_as_drawn_once():
+    """SUNCG draws some rooms over one another (a storage room over a living room): rooms
+    whose bounds are mostly one space share their lights (and indirect light), so the
+    coinciding surfaces look alike, not striped by one room's darkness (issue 40). Here
+    every surface drawn twice, each room with its own fallback: twice the light, the same
+    image (automatic exposure)."""
+    from dataclasses import replace
+
+    from sceneforge.render.lights import light_rooms
+
+    house = boxed_room()
+    camera = look_at_camera([0, 1.5, -1.0], [0.1, -0.2, 1.0], width=64, height=48)
+    with Renderer(64, 48) as r:
+        once = r.render(house, camera)
+    twice = boxed_room()
+    for inst in list(twice.instances):
+        twice.instances.append(replace(inst, id=len(twice.instances), room_id="r1"))
+    lights = house_lights(twice, RenderConfig())
+    assert [(light.room, light.source) for light in lights] == [("r0", "fallback"), ("r1", "fallback")]
+    assert light_rooms(twice, lights) == [("r0", "r1"), ("r1", "r0")]
+    ambient = room_ambient(twice, RenderConfig())
+    np.testing.assert_allclose(ambient["r1"], ambient["r0"])
+    np.testing.assert_allclose(ambient["r0"], 2 * room_ambient(house, RenderConfig())["r0"])
+    with Renderer(64, 48) as r:
+        np.testing.assert_array_equal(r.render(twice, camera), once)
 
 
 def test_batches_group_faces_by_room_and_material():

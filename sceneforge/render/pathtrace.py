@@ -26,7 +26,8 @@ indirect light). The radiance goes through the same exposure and tone-mapping st
 the raster mode's (:func:`sceneforge.render.tonemap.tonemap`). The integrator is
 Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces, inside an ``aov`` integrator that also
 averages each pixel's albedo and shading normal; with ``denoise`` (the default) Intel Open
-Image Denoise removes the noise guided by them (:mod:`.denoise`) before the tone mapping.
+Image Denoise removes the noise guided by them (:mod:`.denoise`) before the tone mapping,
+keeping ``RenderConfig.grain`` (5 %) of it: PBRS's renders, the paper's, show their grain.
 
 Determinism. A fixed sample count and seed give the same image on the same machine and
 variant: the view's seed is the renderer's seed mixed with a CRC of the camera (so views
@@ -59,7 +60,8 @@ import numpy as np
 from ..colour import srgb_to_linear
 from ..conventions import tol
 from ..errors import MissingDependencyError, SceneforgeError
-from .lights import house_lights
+from .lights import glazed_windows, house_lights
+from .sky import dome as sky_dome
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
 from .tonemap import ToneMapped
 
@@ -283,7 +285,9 @@ class PathTracer(ToneMapped):
         if self.denoise:
             from .denoise import denoise
 
-            radiance = denoise(radiance, out[..., 4:7], out[..., 7:10])
+            clean = denoise(radiance, out[..., 4:7], out[..., 7:10])
+            # a little of the samples' own noise kept (RenderConfig.grain): PBRS's grain
+            radiance = clean + self.config.grain * (radiance - clean) if self.config.grain else clean
         # the film's alpha is the fraction of a pixel's samples that hit a surface
         return radiance, out[..., 3] > 0
 
@@ -308,17 +312,47 @@ class PathTracer(ToneMapped):
             "type": "aov", "aovs": "albedo:albedo,normal:sh_normal",
             "integrator": {"type": "path", "max_depth": MAX_DEPTH}}}
         lights = house_lights(house, self.config)
-        windows = {light.instance: light for light in lights if light.source == "window"}
+        # a glazed window is drawn without its glass, and the outdoors (a dome emitting the
+        # sky's radiance) lights the room through it; any other window is an area emitter of
+        # the outdoors' mean radiance, its faces turned into the room
+        glazed = glazed_windows(house) if self.config.sky_luminance > 0 else frozenset()
+        windows = {light.instance: light for light in lights
+                   if light.source == "window" and light.instance not in glazed}
         textures: dict[tuple, object] = {}
-        for k, batch in enumerate(house_batches(house, exclude=frozenset(windows))):
+        for k, batch in enumerate(house_batches(house, exclude=frozenset(windows), see_through=glazed)):
             scene[f"mesh{k:06d}"] = self._mesh(house, f"mesh{k:06d}", batch, textures)
-        # a window is an area emitter of the sky's radiance, its faces turned into the room
         for k, inst in enumerate(i for i in house.instances if i.id in windows):
             scene[f"window{k:06d}"] = self._window(inst, windows[inst.id])
+        if glazed:
+            scene["sky"] = self._sky(house)
         for k, light in enumerate(light for light in lights if light.kind == "point"):
             scene[f"light{k:06d}"] = {"type": "point", "position": light.position.tolist(),
                                       "intensity": {"type": "rgb", "value": [light.intensity] * 3}}
         return mi.load_dict(scene)
+
+    def _sky(self, house: "House"):
+        """The outdoors: the raster mode's dome (:func:`.sky.dome`), an area emitter whose
+        radiance is its vertex colours × ``sky_luminance``, facing inwards, reflecting nothing."""
+        mi = self.mi
+        bounds = house.bounds()
+        centre = bounds.mean(axis=0)
+        radius = min(max(4.0 * float(np.ptp(bounds, axis=0).max()), 50.0), 500.0)
+        v, f, colours = sky_dome(centre, radius)
+        tri = v[f]
+        inward = np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                           centre - tri.mean(axis=1)) >= 0
+        f = np.where(inward[:, None], f, f[:, ::-1])
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "mesh_attribute",
+                                                                      "name": "vertex_color"}})
+        mesh = mi.Mesh("sky", len(v), len(f), props=props, has_vertex_normals=False)
+        mesh.add_attribute("vertex_color", 3, (colours * float(self.config.sky_luminance)).astype(np.float32).ravel())
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = v.astype(np.float32).ravel()
+        params["faces"] = f.astype(np.uint32).ravel()
+        params.update()
+        return mesh
 
     def _window(self, inst, light):
         """A Mitsuba mesh of a window's faces, each wound to face ``light.direction`` (into
@@ -330,7 +364,8 @@ class PathTracer(ToneMapped):
         faces = np.where(inward[:, None], inst.faces, inst.faces[:, ::-1])
         props = mi.Properties()
         props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
-        props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": [light.radiance] * 3}})
+        radiance = [light.radiance * c for c in light.colour]  # the outdoors' colour
+        props["emitter"] = mi.load_dict({"type": "area", "radiance": {"type": "rgb", "value": radiance}})
         mesh = mi.Mesh(f"window{inst.id}", len(inst.vertices), len(faces), props=props, has_vertex_normals=False)
         params = mi.traverse(mesh)
         params["vertex_positions"] = inst.vertices.astype(np.float32).ravel()

@@ -18,25 +18,49 @@ Every face is drawn from both sides, like the ray tracer sees it.
 Look. Every face group of every instance is drawn with its own material
 (``Instance.materials``): linear base colour × the sRGB texture decoded to linear (with
 the material's wrapping, bilinear and mipmapped) × the vertex colours, opaque (alpha is
-ignored, as the depth layers see glass too). Shading is per pixel, by pyrender's shader with the
+ignored, as the depth layers see glass too; only a glazed window's glass is left out, below).
+Shading is per pixel, by pyrender's shader with the
 house's lights (:mod:`sceneforge.render.lights`: lamps, windows, a fallback per room, in
-lumens and candela, 1/d² falloff) plus each room's indirect light (``ambient`` × its flux
-over its surface). The shader is pyrender's own with six changes made when it is loaded
+lumens and candela, 1/d² falloff; windows daylight-coloured) plus each room's indirect light
+(``ambient`` × its flux over its surface × ρ / (1 − ρ), ρ its mean albedo).
+The shader is pyrender's own with seven changes made when it is loaded
 (:func:`_mesh_shader`): Lambertian (the houses' materials are diffuse colours, and the
 path tracer shades them so too), a face seen from behind is shaded with its normal turned to the
 viewer (faces have no consistent winding in real houses), no light is nearer than
 ``light_min_distance``, a spot light (a window) falls off as cos θ inside its cone (a
 Lambertian panel's far field), emission is added once (pyrender squares the factor), and
-the output is the linear radiance itself, into a float framebuffer. Every view's radiance
-then goes through the exposure and tone-mapping step both modes share
-(:func:`sceneforge.render.tonemap.tonemap`). Windows are drawn emitting the sky's radiance.
-A room's geometry is one pyrender mesh lit by that room's lights only (up to
+the output is the linear radiance itself, into a float framebuffer; and its light loops
+are not unrolled (:data:`_LOOP_PATCHES`). Every view's radiance then goes through the
+exposure and tone-mapping step both modes share (:func:`sceneforge.render.tonemap.tonemap`),
+applied where it was drawn (see "Tone mapping" below). A window with glass (a face group of opacity
+below 1) is drawn without its glass, its frame lit like any surface, and through it the
+outdoors shows: a dome around the house with the radiance of :mod:`sceneforge.render.sky`
+as vertex colours (unlit); other windows are drawn emitting the outdoors' mean radiance.
+A room's geometry is one pyrender mesh lit by that room's lights only (and those of a room
+drawn over the same space, :func:`~sceneforge.render.lights.light_rooms`; up to
 :data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
 walls, and every fragment evaluates only its room's few lights. Its faces without a
 texture or emission are one draw (their base colours in the vertex colours).
 Shadows (``RenderConfig.shadows``, off by default) come from shadow maps of the spot
 lights (windows); point lights (lamps, fallbacks) cast none: pyrender 0.1.45 raises
 "Point light shadows not implemented" (``Renderer._bind_lighting``).
+
+Tone mapping. :meth:`Renderer.render` applies the exposure, tone curve and sRGB encoding
+of :func:`~sceneforge.render.tonemap.tonemap` on the GL device, in two full-screen passes
+over the resolved radiance (:class:`_TonePass`): one writes each pixel's luminance, whose
+median (the automatic exposure) numpy takes from a single float channel; the other writes
+the bytes into an RGBA8 target, and only those (3 bytes a pixel) are read back, instead of
+16 bytes of float RGBA and numpy's float32 passes over them. The arithmetic is numpy's,
+float32 step for step (``precise``: no fused multiply-adds), the luminance's two fused
+multiply-adds (OpenBLAS's) emulated in double and the sRGB encoding made exact by 255
+thresholds (:func:`~sceneforge.render.tonemap.encoding_thresholds`), so the bytes are
+``tonemap(render_linear(...))``'s: identical on Mesa's llvmpipe (the toy houses in
+tests/test_render.py; the breakfast room too, at 1280×960); a device whose division is not
+correctly rounded (the ACES curve's one division) may put a value one level off where
+it falls within a float32 rounding of one of the thresholds. ``gpu_tonemap=False`` reads
+the float radiance back and applies numpy's :func:`~sceneforge.render.tonemap.tonemap`.
+On llvmpipe the passes run on the CPU like the rest, in about numpy's CPU time but on every
+core (docs/benchmarks.md, "Raster per-pixel work").
 
 The same view always gives the same bytes on the same machine (GL and driver); across
 GPUs and drivers, shading and texture filtering may differ by a few levels of 8-bit
@@ -65,7 +89,8 @@ import numpy as np
 
 from ..cameras import opencv_to_opengl
 from ..errors import HouseError, MissingDependencyError, SceneforgeError
-from .lights import WINDOW_CONE, Light, house_lights, room_ambient, room_bounds
+from .lights import WINDOW_CONE, Light, glazed_windows, house_lights, light_rooms, room_ambient, room_bounds
+from .sky import dome as sky_dome
 from .tonemap import TONES, ToneMapped
 
 if TYPE_CHECKING:
@@ -93,14 +118,16 @@ class RenderConfig:
     """How rendered views look (lights: :mod:`.lights`; exposure and tone: :mod:`.tonemap`).
     Field docs become the config schema's descriptions."""
 
-    #: raster only: indirect light, as a fraction of a room's light flux spread over the
-    #: surface of its bounds (1: a room of mean albedo 0.5; the path tracer traces it)
+    #: raster only: indirect light, as a multiple of a room's integrating-sphere estimate
+    #: (its lights' flux over the surface of its bounds × ρ / (1 - ρ), ρ the mean albedo of its
+    #: surfaces; the path tracer traces it)
     ambient: float = 1.0
     #: luminous flux of each lamp and of each room's fallback light, lumens (800: a 60 W
     #: incandescent bulb); light falls off as 1/d²
     lamp_power: float = 800.0
-    #: radiance of the sky seen through a window, cd/m² (1000: a dull overcast sky); every
-    #: window lights its room as a panel of this radiance (0: windows give no light)
+    #: mean radiance of the outdoors seen through a window, cd/m² (a clear sky over a sunlit
+    #: ground, daylight-coloured); every window lights its room as a panel of this radiance,
+    #: and glazed windows show the outdoors through their glass (0: windows give no light)
     sky_luminance: float = 1000.0
     #: the fallback light of a room without lamps or windows hangs this far below the top
     #: of its room's bounds, metres
@@ -120,11 +147,17 @@ class RenderConfig:
     flat: bool = False
     #: sRGB colour (0..1) of pixels that see nothing
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: pathtraced with denoising only: the fraction of the path tracer's own noise kept
+    #: (denoised + grain × (raw − denoised)); 0.05 at 64 spp leaves walls about as grainy as
+    #: PBRS's renders (0: the denoised frame)
+    grain: float = 0.05
 
     def __post_init__(self):
         for name in ("ambient", "lamp_power", "sky_luminance", "light_below_ceiling"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.grain <= 1:
+            raise ValueError(f"grain must be in [0, 1], got {self.grain}")
         if not self.light_min_distance > 0:
             raise ValueError(f"light_min_distance must be > 0, got {self.light_min_distance}")
         if self.exposure is not None and not self.exposure > 0:
@@ -183,13 +216,14 @@ def _texture_key(texture) -> object:
 
 
 def house_batches(house: "House", emission: dict[int, float] | None = None,
-                  exclude: frozenset[int] = frozenset()) -> list["Batch"]:
+                  exclude: frozenset[int] = frozenset(), see_through: frozenset[int] = frozenset()) -> list["Batch"]:
     """The house's face groups as draw batches: per room (in order of first instance), one
     per distinct material (in order of first use); instances without vertex colours and
     with them are apart, and so are emitting ones (``emission``: ``Instance.id`` → radiance,
     the windows of :func:`~sceneforge.render.lights.house_lights`); the instances of
-    ``exclude`` (ids) are left out. An instance with a texture but no ``uv`` is drawn with
-    its base colour only."""
+    ``exclude`` (ids) are left out, and so are the translucent face groups (opacity < 1: the
+    glass) of the instances of ``see_through``. An instance with a texture but no ``uv`` is
+    drawn with its base colour only."""
     from dataclasses import replace
 
     centres = {room: 0.5 * (b[0] + b[1]) for room, b in room_bounds(house).items()}
@@ -202,6 +236,8 @@ def house_batches(house: "House", emission: dict[int, float] | None = None,
         normal /= np.linalg.norm(normal, axis=1, keepdims=True)
         group = inst.face_materials()
         for g, material in enumerate(inst.materials):
+            if inst.id in see_through and material.base_color[3] < 1.0:
+                continue
             faces = np.flatnonzero(group == g) if len(inst.materials) > 1 else slice(None)
             if inst.uv is None and material.texture is not None:
                 material = replace(material, texture=None)
@@ -254,6 +290,15 @@ _SHADER_PATCHES = (
     ("    frag_color = clamp(vec4(pow(color.xyz, vec3(1.0/2.2)), color.a * base_color.a), 0.0, 1.0);\n",
      "    frag_color = vec4(max(color.xyz, vec3(0.0)), 1.0);\n"),
 )
+#: and the light loops' arrays indexed through min(): Mesa bounds a loop by the length of an
+#: array its counter indexes and unrolls it, and llvmpipe then evaluates all MAX_LIGHTS
+#: bodies of each kind for every fragment under a mask, lights or not (a 1280×960 toy-house
+#: frame with no light at all, ``flat``: 177 ms, against 37 ms with the loops taken out).
+#: Indexed so, the loops stay loops; the radiance is the same to the bit
+_LOOP_PATCHES = tuple(
+    (f"    for (int i = 0; i < n_{kind}_lights; i++) {{\n",
+     f"    for (int k = 0; k < n_{kind}_lights; k++) {{\n        int i = min(k, MAX_{kind.upper()}_LIGHTS - 1);\n")
+    for kind in ("directional", "point", "spot"))
 
 
 @functools.cache
@@ -266,11 +311,11 @@ def _shader_dir() -> Path:
 
 @functools.cache
 def _mesh_shader(min_distance: float) -> str:
-    """Path of pyrender's mesh.frag with :data:`_SHADER_PATCHES` applied."""
+    """Path of pyrender's mesh.frag with :data:`_SHADER_PATCHES` and :data:`_LOOP_PATCHES` applied."""
     pyrender = _gl().pyrender
 
     text = (Path(pyrender.__file__).parent / "shaders" / "mesh.frag").read_text()
-    for old, new in _SHADER_PATCHES:
+    for old, new in _SHADER_PATCHES + _LOOP_PATCHES:
         if text.count(old) != (2 if "dist" in old else 1):
             raise SceneforgeError(f"pyrender {pyrender.__version__}'s mesh.frag is not the one sceneforge "
                                   f"patches (install pyrender 0.1.45): no {old.strip()!r}")
@@ -279,6 +324,213 @@ def _mesh_shader(min_distance: float) -> str:
     path = _shader_dir() / f"mesh_{len(list(_shader_dir().iterdir()))}.frag"
     path.write_text(text)
     return str(path)
+
+
+# ---------------------------------------------------------------------------------------
+# Exposure, tone curve and sRGB encoding on the GPU
+
+#: a triangle that covers the viewport: (-1, -1), (3, -1), (-1, 3), from gl_VertexID alone
+_FULL_SCREEN_VERT = """#version 410 core
+void main() {
+    gl_Position = vec4(float((gl_VertexID & 1) << 2) - 1.0, float((gl_VertexID & 2) << 1) - 1.0, 0.0, 1.0);
+}
+"""
+
+#: what both passes start with: this fragment's radiance, rows in image order
+_PIXEL = """#version 410 core
+uniform sampler2D radiance;  // the resolved float framebuffer: linear RGB, alpha > 0 where a surface was drawn
+
+// the pixel of this fragment in image order (row 0 at the top: the rows read back need no
+// flip), NaN and infinite radiance replaced by 0 (tonemap's nan_to_num)
+vec4 pixel() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+    vec4 c = texelFetch(radiance, ivec2(p.x, textureSize(radiance, 0).y - 1 - p.y), 0);
+    c.rgb = mix(c.rgb, vec3(0.0), isnan(c.rgb));
+    c.rgb = mix(c.rgb, vec3(0.0), isinf(c.rgb));
+    return c;
+}
+"""
+
+#: pass 1 (automatic exposure only): the Rec. 709 luminance of every seen pixel, -inf elsewhere
+_LUMINANCE_FRAG = _PIXEL + """
+uniform vec3 weights;  // tonemap.LUMINANCE in float32
+out float luminance;
+
+void main() {
+    vec4 c = pixel();
+    // numpy's float32 (H, W, 3) @ (3,) (OpenBLAS's sgemv on x86-64): r w0, then two fused
+    // multiply-adds, g w1 and b w2. GLSL's fma() need not be fused (llvmpipe's is not): in
+    // double, the product of two floats is exact and the sum is rounded to float after
+    // double (off from a fused float32 one only where that double rounding meets a tie,
+    // about once in 2^29). `precise`: no other contraction or reordering.
+    precise float l = c.r * weights.r;
+    precise double t = double(c.g) * double(weights.g) + double(l);
+    l = float(t);
+    t = double(c.b) * double(weights.b) + double(l);
+    l = float(t);
+    luminance = c.a > 0.0 ? l : uintBitsToFloat(0xff800000u);
+}
+"""
+
+#: pass 2: the bytes of tonemap.tonemap
+_TONE_FRAG = _PIXEL + """
+uniform float exposure;      // float32(e), as tonemap multiplies
+uniform int aces;            // 1: the ACES fit, 0: clip
+uniform vec4 curve;          // a, b, c, d of tonemap.ACES in float32
+uniform float curve_e;       // e
+uniform float bounds[257];   // [0] -1, [j] tonemap.encoding_thresholds()[j - 1], [256] 2
+uniform vec3 background;     // the bytes of pixels that see nothing
+out vec4 srgb;               // bytes / 255 into an RGBA8 target: exactly the bytes
+
+void main() {
+    vec4 c = pixel();
+    // tonemap's float32 steps in its order; `precise`: no fused multiply-adds
+    precise vec3 x = max(c.rgb * exposure, vec3(0.0));
+    precise vec3 y = x;
+    if (aces != 0)
+        y = (x * (curve.x * x + curve.y)) / (x * (curve.z * x + curve.w) + curve_e);
+    y = min(y, vec3(1.0));
+    // sRGB byte: pow's estimate, within a level, then made exact by the thresholds (the
+    // byte is the number of thresholds at or below y)
+    vec3 s = mix(12.92 * y, 1.055 * pow(y, vec3(1.0 / 2.4)) - 0.055, greaterThan(y, vec3(0.0031308)));
+    ivec3 q = clamp(ivec3(roundEven(255.0 * s)), 0, 255);
+    for (int k = 0; k < 3; k++) {
+        q[k] += int(y[k] >= bounds[q[k] + 1]) - int(y[k] < bounds[q[k]]);
+    }
+    srgb = c.a > 0.0 ? vec4(vec3(q) / 255.0, 1.0) : vec4(background / 255.0, 1.0);
+}
+"""
+
+
+class _TonePass:
+    """:func:`sceneforge.render.tonemap.tonemap` as two full-screen GL passes over the
+    resolved radiance texture, for one renderer's context and size (see :meth:`apply`).
+
+    The luminance pass (automatic exposure only) writes each pixel's float32 luminance, or
+    -inf where nothing is seen, into an R32F target; it is read back (4 bytes per pixel, a
+    quarter of the RGBA float image) and its median taken with numpy
+    (:func:`~sceneforge.render.tonemap.exposure_of_luminance`: the same values and
+    arithmetic as :func:`~sceneforge.render.tonemap.auto_exposure`). The tone pass writes
+    the bytes into an RGBA8 target, read back as RGB bytes: the image.
+    """
+
+    def __init__(self, width: int, height: int, config: RenderConfig):
+        from .tonemap import ACES, LUMINANCE, background_bytes, encoding_thresholds
+
+        GL = _gl().GL
+        self.width, self.height = width, height
+        self.exposure: float | None = None  # of the last view
+        self._programs, self._fbs, self._rbs = [], [], []
+        self._luminance = self._program(_LUMINANCE_FRAG)
+        self._tone = self._program(_TONE_FRAG)
+        self._vao = GL.glGenVertexArrays(1)  # core profile: drawing needs one, even empty
+        self._luminance_fb = self._target(GL.GL_R32F)
+        self._tone_fb = self._target(GL.GL_RGBA8)
+        f32 = np.float32
+        GL.glUseProgram(self._luminance)
+        GL.glUniform3f(self._uniform(self._luminance, "weights"), *(float(w) for w in LUMINANCE.astype(f32)))
+        GL.glUseProgram(self._tone)
+        GL.glUniform1i(self._uniform(self._tone, "aces"), int(config.tone == "aces"))
+        a, b, c, d, e = (float(f32(v)) for v in ACES)
+        GL.glUniform4f(self._uniform(self._tone, "curve"), a, b, c, d)
+        GL.glUniform1f(self._uniform(self._tone, "curve_e"), e)
+        bounds = np.concatenate([[-1.0], encoding_thresholds(), [2.0]]).astype(f32)
+        GL.glUniform1fv(self._uniform(self._tone, "bounds"), 257, bounds)
+        GL.glUniform3f(self._uniform(self._tone, "background"), *(float(v) for v in background_bytes(config.background)))
+        GL.glUseProgram(0)
+        self._exposure_loc = self._uniform(self._tone, "exposure")
+
+    def apply(self, radiance_texture, exposure: float | None) -> np.ndarray:
+        """(H, W, 3) uint8: :func:`~sceneforge.render.tonemap.tonemap` of the radiance in
+        ``radiance_texture`` (RGBA32F, OpenGL's bottom-up rows, alpha > 0 where seen) with
+        ``exposure`` (None: automatic) and this pass's tone curve and background."""
+        from .tonemap import exposure_of_luminance
+
+        GL = _gl().GL
+        W, H = self.width, self.height
+        GL.glViewport(0, 0, W, H)
+        for cap in (GL.GL_DEPTH_TEST, GL.GL_BLEND, GL.GL_CULL_FACE):
+            GL.glDisable(cap)
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, radiance_texture)
+        GL.glBindVertexArray(self._vao)
+        if exposure is None:
+            luminance = np.empty((H, W), np.float32)
+            self._draw(self._luminance, self._luminance_fb)
+            GL.glReadPixels(0, 0, W, H, GL.GL_RED, GL.GL_FLOAT, luminance.ctypes.data)
+            exposure = exposure_of_luminance(luminance[luminance > -np.inf])
+        self.exposure = float(exposure)
+        GL.glUseProgram(self._tone)
+        GL.glUniform1f(self._exposure_loc, float(np.float32(exposure)))
+        rgb = np.empty((H, W, 3), np.uint8)
+        self._draw(self._tone, self._tone_fb)
+        GL.glReadPixels(0, 0, W, H, GL.GL_RGB, GL.GL_UNSIGNED_BYTE, rgb.ctypes.data)
+        GL.glBindVertexArray(0)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+        GL.glUseProgram(0)
+        return rgb
+
+    def delete(self) -> None:
+        """Free the programs, targets and vertex array (the context must be current)."""
+        GL = _gl().GL
+        for program in self._programs:
+            GL.glDeleteProgram(program)
+        if self._fbs:
+            GL.glDeleteFramebuffers(len(self._fbs), self._fbs)
+            GL.glDeleteRenderbuffers(len(self._rbs), self._rbs)
+        GL.glDeleteVertexArrays(1, [self._vao])
+        self._programs, self._fbs, self._rbs = [], [], []
+
+    def _draw(self, program, framebuffer) -> None:
+        GL = _gl().GL
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, framebuffer)
+        GL.glUseProgram(program)
+        GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, framebuffer)
+
+    def _program(self, fragment: str):
+        GL = _gl().GL
+        shaders = []
+        for kind, text in ((GL.GL_VERTEX_SHADER, _FULL_SCREEN_VERT), (GL.GL_FRAGMENT_SHADER, fragment)):
+            shader = GL.glCreateShader(kind)
+            GL.glShaderSource(shader, text)
+            GL.glCompileShader(shader)
+            if not GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS):
+                raise SceneforgeError(f"the tone-mapping shader does not compile: {GL.glGetShaderInfoLog(shader)!r}")
+            shaders.append(shader)
+        program = GL.glCreateProgram()
+        for shader in shaders:
+            GL.glAttachShader(program, shader)
+        GL.glLinkProgram(program)
+        for shader in shaders:
+            GL.glDeleteShader(shader)
+        if not GL.glGetProgramiv(program, GL.GL_LINK_STATUS):
+            raise SceneforgeError(f"the tone-mapping shader does not link: {GL.glGetProgramInfoLog(program)!r}")
+        self._programs.append(program)
+        GL.glUseProgram(program)
+        GL.glUniform1i(self._uniform(program, "radiance"), 0)
+        return program
+
+    def _uniform(self, program, name: str) -> int:
+        location = _gl().GL.glGetUniformLocation(program, name)
+        if location < 0:
+            raise SceneforgeError(f"the tone-mapping shader has no uniform {name!r}")
+        return location
+
+    def _target(self, fmt):
+        """A framebuffer of one colour renderbuffer of ``fmt``, the renderer's size."""
+        GL = _gl().GL
+        rb = GL.glGenRenderbuffers(1)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, self.width, self.height)
+        fb = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, rb)
+        if GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER) != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise SceneforgeError("the tone-mapping framebuffer is incomplete")
+        self._rbs.append(rb)
+        self._fbs.append(fb)
+        return fb
 
 
 # ---------------------------------------------------------------------------------------
@@ -344,6 +596,11 @@ def _gl() -> SimpleNamespace:
             self.samples = samples
             self._program_cache = ShaderCache(mesh_shader)
             self._lit: dict = {}  # program → (scene, mesh node) whose lights it has
+            #: the RGBA32F texture that holds the last frame's resolved radiance
+            self.radiance_texture = None
+            #: False: a colour render leaves the radiance in :attr:`radiance_texture` and
+            #: returns None instead of reading it back
+            self.read_radiance = True
 
         def _bind_lighting(self, scene, program, node, flags):
             # Light uniforms depend on the scene and the mesh node only, and stay set in a
@@ -373,6 +630,25 @@ def _gl() -> SimpleNamespace:
                 for buffer, fmt in ((self._main_cb_ms, GL.GL_RGBA32F), (self._main_db_ms, GL.GL_DEPTH_COMPONENT24)):
                     GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, buffer)
                     GL.glRenderbufferStorageMultisample(GL.GL_RENDERBUFFER, self.samples, fmt, W, H)
+                # the resolved colour is a texture, which the tone-mapping passes sample
+                # (pyrender's renderbuffer, detached, keeps one texel)
+                GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._main_cb)
+                GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, 1, 1)
+                self.radiance_texture = GL.glGenTextures(1)
+                GL.glBindTexture(GL.GL_TEXTURE_2D, self.radiance_texture)
+                GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, W, H, 0, GL.GL_RGBA, GL.GL_FLOAT, None)
+                for name in (GL.GL_TEXTURE_MIN_FILTER, GL.GL_TEXTURE_MAG_FILTER):  # one level: complete
+                    GL.glTexParameteri(GL.GL_TEXTURE_2D, name, GL.GL_NEAREST)
+                GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+                GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._main_fb)
+                GL.glFramebufferTexture2D(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_TEXTURE_2D,
+                                          self.radiance_texture, 0)
+
+        def _delete_main_framebuffer(self):
+            super()._delete_main_framebuffer()
+            if self.radiance_texture is not None:
+                GL.glDeleteTextures([self.radiance_texture])
+                self.radiance_texture = None
 
         def _read_main_framebuffer(self, scene, flags):
             # colour only (pyrender also reads and converts the depth buffer every frame):
@@ -383,6 +659,8 @@ def _gl() -> SimpleNamespace:
             GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb_ms)
             GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._main_fb)
             GL.glBlitFramebuffer(0, 0, W, H, 0, 0, W, H, GL.GL_COLOR_BUFFER_BIT, GL.GL_NEAREST)
+            if not self.read_radiance:
+                return None, None
             GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._main_fb)
             data = GL.glReadPixels(0, 0, W, H, GL.GL_RGBA, GL.GL_FLOAT)
             return np.frombuffer(data, dtype=np.float32).reshape(H, W, 4)[::-1], None
@@ -516,6 +794,11 @@ class Renderer(ToneMapped):
     antialias     : 4× multisampling (pyrender's default); off by default so that pixels
                     sample their centres like the ray tracer (see the module docstring)
     config        : lights, shadows and background
+    gpu_tonemap   : :meth:`render` applies the exposure, tone curve and sRGB encoding on the
+                    GL device and reads back bytes (the default); False: it reads back the
+                    float radiance and applies :func:`~sceneforge.render.tonemap.tonemap`
+                    with numpy (the reference, slower per pixel; the same bytes up to a level
+                    where the device rounds differently, see the module docstring)
 
     Keeps the GL scene of the last house it rendered (compared by identity: do not modify a
     house between renders) and rebuilds it, freeing the old one, when the house changes.
@@ -524,7 +807,7 @@ class Renderer(ToneMapped):
     """
 
     def __init__(self, width: int, height: int, gpu: int | None = None, antialias: bool = False,
-                 config: RenderConfig | None = None):
+                 config: RenderConfig | None = None, gpu_tonemap: bool = True):
         if int(width) < 1 or int(height) < 1:
             raise ValueError(f"image size must be positive, got {width}×{height}")
         gl = _gl()
@@ -546,18 +829,32 @@ class Renderer(ToneMapped):
         gl.GL.glPixelStorei(gl.GL.GL_PACK_ALIGNMENT, 1)
         self._gl = gl.Renderer(self.width, self.height, samples=4 if self.antialias else 0,
                                mesh_shader=_mesh_shader(float(self.config.light_min_distance)))
+        self.gpu_tonemap = bool(gpu_tonemap)
+        self._tone = _TonePass(self.width, self.height, self.config)
         self._house: House | None = None
         self._scene = None
         self._camera_node = None
 
     # -- public API ---------------------------------------------------------------------
 
+    def render(self, house: "House", camera: "Camera") -> np.ndarray:
+        """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera``: the radiance of
+        :meth:`render_linear` through :func:`~sceneforge.render.tonemap.tonemap`'s exposure,
+        tone curve and encoding, on the GL device unless ``gpu_tonemap`` is False."""
+        if not self.gpu_tonemap:
+            return super().render(house, camera)
+        flags = self._colour_flags(house, camera)
+        self._gl.read_radiance = False
+        try:
+            self._gl.render(self._scene, flags)
+        finally:
+            self._gl.read_radiance = True
+        return self._tone.apply(self._gl.radiance_texture, self.config.exposure)
+
     def render_linear(self, house: "House", camera: "Camera") -> tuple[np.ndarray, np.ndarray]:
         """(H, W, 3) float32 linear radiance (cd/m²) of the view and the (H, W) bool mask of
         the pixels that see a surface."""
-        flags = self._prepare(house, camera)
-        if self.config.shadows:
-            flags |= _gl().pyrender.RenderFlags.SHADOWS_SPOT
+        flags = self._colour_flags(house, camera)  # before reading self._scene: it may build it
         rgba, _ = self._gl.render(self._scene, flags)
         return rgba[..., :3], rgba[..., 3] > 0
 
@@ -586,9 +883,10 @@ class Renderer(ToneMapped):
         if self._platform is None:
             return
         self._platform.make_current()
+        self._tone.delete()
         self._gl.delete()
         self._platform.delete_context()
-        self._platform = self._gl = self._scene = self._house = self._camera_node = None
+        self._platform = self._gl = self._tone = self._scene = self._house = self._camera_node = None
 
     def __enter__(self) -> "Renderer":
         return self
@@ -614,6 +912,13 @@ class Renderer(ToneMapped):
         RenderFlags = _gl().pyrender.RenderFlags
         return RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
 
+    def _colour_flags(self, house: "House", camera: "Camera") -> int:
+        """:meth:`_prepare`, with the shadow maps' flag when ``config.shadows``."""
+        flags = self._prepare(house, camera)
+        if self.config.shadows:
+            flags |= _gl().pyrender.RenderFlags.SHADOWS_SPOT
+        return flags
+
     def _build_scene(self, house: "House") -> None:
         """Replace the GL scene by one of ``house``, freeing the previous one's GL objects first."""
         gl = _gl()
@@ -625,11 +930,16 @@ class Renderer(ToneMapped):
         self._gl._lit.clear()
         config = self.config
         lights = [] if config.flat else house_lights(house, config)
-        emission = {light.instance: light.radiance for light in lights if light.source == "window"}
+        # glazed windows show the outdoors through their glass (a dome around the house);
+        # the others are drawn as panels of the outdoors' mean radiance and colour
+        glazed = glazed_windows(house) if lights and config.sky_luminance > 0 else frozenset()
+        emission = {light.instance: light.radiance for light in lights
+                    if light.source == "window" and light.instance not in glazed}
+        daylight = next((np.asarray(light.colour) for light in lights if light.source == "window"), np.ones(3))
         scene = gl.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(float(config.ambient),) * 3)
         textures: dict[tuple, object] = {}
         rooms: dict[str | None, tuple[np.ndarray, list]] = {}
-        for batch in _merge_plain(house_batches(house, emission)):
+        for batch in _merge_plain(house_batches(house, emission, see_through=glazed)):
             material = batch.material
             texture = None
             if material.texture is not None:
@@ -643,7 +953,8 @@ class Renderer(ToneMapped):
                 texture = textures[key]
             look = pyrender.MetallicRoughnessMaterial(
                 baseColorFactor=(*(float(c) for c in material.base_color[:3]), 1.0), baseColorTexture=texture,
-                metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True, emissiveFactor=(batch.emission,) * 3)
+                metallicFactor=0.0, roughnessFactor=1.0, doubleSided=True,
+                emissiveFactor=tuple(float(c) for c in batch.emission * daylight))
             primitive = pyrender.Primitive(positions=batch.positions, normals=batch.normals, color_0=batch.colors,
                                            texcoord_0=batch.uv, material=look)
             rooms.setdefault(batch.room, (batch.origin, []))[1].append(primitive)
@@ -652,15 +963,35 @@ class Renderer(ToneMapped):
             mesh_of_room[room] = f"room{k:06d}"
             scene.add(pyrender.Mesh(primitives=primitives), name=mesh_of_room[room], pose=_translation(origin))
         scene.room_lights = {name: [] for name in mesh_of_room.values()}
-        for k, light in enumerate(lights):
-            node, pose = _pyrender_light(pyrender, light)
-            if light.room in mesh_of_room:
-                scene.room_lights[mesh_of_room[light.room]].append(scene.add(node, name=f"light{k:06d}", pose=pose))
+        for k, (light, reached) in enumerate(zip(lights, light_rooms(house, lights), strict=True)):
+            meshes = [mesh_of_room[room] for room in reached if room in mesh_of_room]
+            if meshes:  # one node, lighting its own room and the rooms of the same space
+                node, pose = _pyrender_light(pyrender, light)
+                node = scene.add(node, name=f"light{k:06d}", pose=pose)
+                for name in meshes:
+                    scene.room_lights[name].append(node)
         # pyrender's ambient term is base colour × ambient_light, a Lambertian surface's
         # radiance under irradiance E is base colour × E / π
         scene.room_ambient = {} if config.flat else {
-            mesh_of_room[room]: np.full(3, e / np.pi) for room, e in room_ambient(house, config, lights).items()
+            mesh_of_room[room]: np.asarray(e) / np.pi for room, e in room_ambient(house, config, lights).items()
             if room in mesh_of_room}
+        if glazed:
+            # the outdoors: a dome of the sky's radiance (vertex colours × an ambient light of
+            # 1 and no light: exactly that radiance), lit by nothing else
+            centre = house.bounds().mean(axis=0)
+            radius = min(max(4.0 * float(np.ptp(house.bounds(), axis=0).max()), 50.0), 0.5 * FAR)
+            v, f, colours = sky_dome(centre, radius)
+            dome = pyrender.Primitive(
+                positions=(v[f] - centre).reshape(-1, 3).astype(np.float32),
+                normals=np.repeat(-np.asarray(v[f].mean(axis=1) - centre, np.float64)
+                                  / radius, 3, axis=0).astype(np.float32),
+                color_0=np.concatenate([(colours[f] * float(config.sky_luminance)).reshape(-1, 3),
+                                        np.ones((3 * len(f), 1))], axis=1).astype(np.float32),
+                material=pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0,
+                                                            roughnessFactor=1.0, doubleSided=True))
+            scene.add(pyrender.Mesh(primitives=[dome]), name="sky", pose=_translation(centre))
+            scene.room_lights["sky"] = []
+            scene.room_ambient["sky"] = np.ones(3)
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
         # shadow maps frame the scene's bounds; pyrender's own computation uses np.infty,
         # which NumPy 2 removed
@@ -710,11 +1041,12 @@ def _pyrender_light(pyrender, light: Light):
     scale; a spot light points along its pose's -z (the patched shader: cos θ inside its cone)."""
     intensity = light.intensity / _DIFFUSE
     if light.kind == "point":
-        return pyrender.PointLight(color=np.ones(3), intensity=intensity), _translation(light.position)
+        return pyrender.PointLight(color=np.asarray(light.colour, dtype=np.float64), intensity=intensity), \
+            _translation(light.position)
     z = -np.asarray(light.direction, dtype=np.float64)
     x = np.cross([0.0, 1.0, 0.0], z)
     x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-9 else np.array([1.0, 0.0, 0.0])
     pose = _translation(light.position)
     pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    return pyrender.SpotLight(color=np.ones(3), intensity=intensity, innerConeAngle=0.0,
+    return pyrender.SpotLight(color=np.asarray(light.colour, dtype=np.float64), intensity=intensity, innerConeAngle=0.0,
                               outerConeAngle=float(WINDOW_CONE)), pose

@@ -1,5 +1,6 @@
 """Linear HDR radiance → 8-bit sRGB: the one exposure and tone-mapping step of both RGB
-modes (pure numpy, so both modes and every machine apply the same arithmetic).
+modes (defined in numpy, float32, so both modes and every machine apply the same
+arithmetic; the raster mode evaluates it on the GL device, see "Where it runs").
 
 Both renderers produce linear radiance in the lights' units (:mod:`.lights`: lumens,
 candela, cd/m²) for every pixel, and :func:`tonemap` turns it into the stored image:
@@ -20,9 +21,22 @@ candela, cd/m²) for every pixel, and :func:`tonemap` turns it into the stored i
    ``RenderConfig.background`` exactly.
 
 The curve maps 0 to 0, so a channel a surface does not reflect stays exactly 0.
+
+Where it runs. :func:`tonemap` (numpy, float32) is the definition, and what the path tracer
+applies (:class:`ToneMapped`). The raster renderer applies the same arithmetic on the GPU
+where it draws (:mod:`.raster`, ``Renderer(gpu_tonemap=True)``, the default): a shader
+pass writes each pixel's luminance, of which only the median is taken here
+(:func:`exposure_of_luminance`), and a second pass writes the bytes, which are all that is
+read back. Its bytes are those of :func:`tonemap`: float32 step for step, the sRGB
+encoding exact through :func:`encoding_thresholds` whatever the device's ``pow``, the
+luminance with numpy's (OpenBLAS's) fused multiply-adds; identical on Mesa's llvmpipe
+(tests/test_render.py). A device whose float32 division is not correctly rounded may put
+a channel one level off where the curve's value lies within a rounding of a threshold.
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -46,7 +60,12 @@ def aces(x):
 def auto_exposure(radiance: np.ndarray, seen: np.ndarray) -> float:
     """The exposure that puts the median luminance of the ``seen`` pixels at :data:`KEY`;
     1 when nothing is seen or the median is black (then the mean is used if it is not)."""
-    luminance = (radiance @ LUMINANCE.astype(radiance.dtype))[seen]
+    return exposure_of_luminance((radiance @ LUMINANCE.astype(radiance.dtype))[seen])
+
+
+def exposure_of_luminance(luminance: np.ndarray) -> float:
+    """:func:`auto_exposure` of the (n,) luminances of the seen pixels, in image order (the
+    order matters only to the mean, used when the median is black)."""
     if luminance.size == 0:
         return 1.0
     middle = float(np.median(luminance))
@@ -82,18 +101,51 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
     else:
         y = x
     np.minimum(y, f(1.0), out=y)
+    out = encode(y)
+    out[~seen] = background_bytes(background)
+    return out
+
+
+def encode(y: np.ndarray) -> np.ndarray:
+    """uint8 sRGB bytes of float32 tone-mapped values ``y`` in [0, 1] (IEC 61966-2-1, rounded
+    to nearest, in float32 as :func:`tonemap` evaluates it)."""
+    f = np.float32
     srgb = f(1.055) * np.power(y, f(1 / 2.4)) - f(0.055)
     dark = y <= f(0.0031308)
     srgb[dark] = f(12.92) * y[dark]
-    out = np.rint(srgb * f(255.0)).astype(np.uint8)
-    out[~seen] = np.round(255.0 * np.asarray(background, dtype=np.float64)).astype(np.uint8)
-    return out
+    return np.rint(srgb * f(255.0)).astype(np.uint8)
+
+
+def background_bytes(background) -> np.ndarray:
+    """(3,) uint8: the bytes of an sRGB ``background`` colour in [0, 1]."""
+    return np.round(255.0 * np.asarray(background, dtype=np.float64)).astype(np.uint8)
+
+
+@functools.cache
+def encoding_thresholds() -> np.ndarray:
+    """(255,) float32: entry ``j`` is the least float32 ``y`` that :func:`encode` turns into
+    ``j + 1`` or more, so that ``encode(y)`` is the number of entries ≤ ``y``: the sRGB
+    encoding as 255 comparisons, exact whatever a GPU's ``pow`` rounds to. (Found by
+    bisection on the bits of ``y``; that the count equals :func:`encode` for every float32 in
+    [0, 1] was checked exhaustively on numpy 2 / x86-64, and tests/test_render.py checks it
+    around every entry.)"""
+    f = np.float32
+    lo = np.zeros(255, np.uint32)  # encode(lo) <= j, encode(hi) >= j + 1
+    hi = np.full(255, f(1.0).view(np.uint32), np.uint32)
+    level = np.arange(1, 256)
+    while np.any(hi - lo > 1):
+        mid = lo + (hi - lo) // 2
+        above = encode(mid.view(f)) >= level
+        hi, lo = np.where(above, mid, hi), np.where(above, lo, mid)
+    return hi.view(f)
 
 
 class ToneMapped:
     """What a renderer of linear radiance gets for free: :meth:`render`, its image through
     :func:`tonemap` with the exposure, curve and background of its ``config`` (a
-    :class:`~.raster.RenderConfig`). Both modes end in this one step."""
+    :class:`~.raster.RenderConfig`). Both modes end in this one step: the path tracer with
+    numpy, the raster renderer on the GL device (its own ``render``, the same bytes; this one
+    with ``gpu_tonemap=False``)."""
 
     def render(self, house, camera) -> np.ndarray:
         """(H, W, 3) uint8 sRGB image of ``house`` seen from ``camera`` (:func:`tonemap` of
