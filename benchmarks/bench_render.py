@@ -24,8 +24,11 @@ In one run on the same scenes and cameras:
   toy house and the breakfast room, and the difference 1280×960 − 8×6, for three renderers
   measured in turns, one at a time (the machine is shared; the best pass counts): ``before`` (pyrender's
   light loops, which Mesa unrolls, the float radiance read back and tone-mapped with numpy),
-  ``loops`` (the light loops fixed, numpy tone mapping: ``gpu_tonemap=False``) and ``after``
-  (tone mapping in GL passes, bytes read back: the default).
+  ``loops`` (the light loops fixed, numpy tone mapping: ``gpu_tonemap=False``), ``GL tone``
+  (tone mapping in GL passes, bytes read back, every fragment that passes the depth test
+  shaded), ``pre-pass`` (also a depth pre-pass, each pixel shaded once) and ``after`` (the
+  default: the pre-pass where the scene has at most a quarter as many triangles as the frame
+  has pixels).
 
     python benchmarks/bench_render.py [--views 3] [--frames 500] [--pt-frames 20] [--samples 64]
     python benchmarks/bench_render.py --per-pixel [--views 3] [--repeats 5]
@@ -131,8 +134,9 @@ def unrolled_light_loops():
         raster._mesh_shader.cache_clear()
 
 
-#: the renderers of ``--per-pixel``: name → (unrolled light loops, gpu_tonemap)
-PER_PIXEL_PATHS = {"before": (True, False), "loops": (False, False), "after": (False, True)}
+#: the renderers of ``--per-pixel``: name → (unrolled light loops, gpu_tonemap, depth pre-pass)
+PER_PIXEL_PATHS = {"before": (True, False, False), "loops": (False, False, False), "GL tone": (False, True, False),
+                   "pre-pass": (False, True, True), "after": (False, True, "auto")}
 PER_PIXEL_SIZES = ((8, 6), (320, 240), (640, 480), (1280, 960))
 
 
@@ -154,9 +158,10 @@ def per_pixel(scenes, repeats: int, rounds: int = 3) -> dict[str, dict[str, dict
             best = {clock: dict.fromkeys(paths, float("inf")) for clock in out}
             for k in range(rounds):
                 for path in paths if k % 2 == 0 else paths[::-1]:
-                    unrolled, gpu_tonemap = PER_PIXEL_PATHS[path]
+                    unrolled, gpu_tonemap, prepass = PER_PIXEL_PATHS[path]
                     with unrolled_light_loops() if unrolled else contextlib.nullcontext():
                         r = Renderer(W, H, gpu_tonemap=gpu_tonemap)
+                    r._gl.depth_prepass = prepass
                     with r:
                         r.render(house, views[0])  # the scene build
                         for _ in range(repeats):
@@ -275,8 +280,9 @@ def main():
         print(f"best of {args.repeats} passes over each scene's views in each of 3 rounds; "
               "a renderer of each path in turn, one at a time")
         print("raster, ms per frame (RGB bytes); before: pyrender's light loops (unrolled by Mesa), float readback, "
-              "numpy tone mapping; loops: light loops fixed, numpy tone mapping; after: tone mapping in GL, bytes "
-              "read back")
+              "numpy tone mapping; loops: light loops fixed, numpy tone mapping; GL tone: tone mapping in GL, bytes "
+              "read back; pre-pass: GL tone and a depth pre-pass (each pixel shaded once); after: the default, "
+              "the pre-pass where triangles <= pixels / 4")
         times = per_pixel(scenes, args.repeats)
         print_per_pixel(times["wall"], "wall clock")
         print_per_pixel(times["cpu"], "CPU time")

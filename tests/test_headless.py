@@ -106,10 +106,9 @@ CHILD = textwrap.dedent("""
             print(f"frame: {rgb.shape} std {std:.1f} on {renderer.gl_info()['renderer']}")
     else:
         print("frame: no EGL device")
-    # Xlib (python-xlib), pyglet.libs.x11.*, pyglet.window.xlib, pyglet.gl.xlib; not PyOpenGL's
-    # GLX platform (OpenGL.platform.glx: plain Python, which import_pyrender's PyOpenGL picks
-    # before the renderer switches it to EGL)
-    x11 = sorted(m for m in sys.modules if {"xlib", "x11"} & set(m.lower().split(".")))
+    # Xlib (python-xlib), pyglet.libs.x11.*, pyglet.window.xlib, pyglet.gl.xlib, and PyOpenGL's
+    # GLX platform (OpenGL.platform.glx: import_pyrender tells PyOpenGL to use EGL)
+    x11 = sorted(m for m in sys.modules if {"xlib", "x11", "glx"} & set(m.lower().split(".")))
     print("x11 modules:", x11)
 """)
 

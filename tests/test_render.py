@@ -753,3 +753,56 @@ def test_pyrender_is_imported_in_one_place_and_headless():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip().splitlines()[-1] == "True []", res.stdout
+
+
+# ------------------------------------------------------------------ depth pre-pass
+
+
+@pytest.mark.parametrize("case", GPU_TONE_CASES)
+def test_depth_prepass_changes_no_pixel(case, toy_houses):
+    """The depth pre-pass (z-buffer first, then each pixel shaded once) gives the radiance
+    and the bytes of the single pass, bit for bit, with shadows and multisampling too."""
+    config, antialias = GPU_TONE_CASES[case]
+    W, H = 161, 121
+    with Renderer(W, H, config=config, antialias=antialias) as r, \
+            Renderer(W, H, config=config, antialias=antialias) as single:
+        r._gl.depth_prepass, single._gl.depth_prepass = True, False
+        passes = []
+        depth_pass = r._gl._depth_pass
+        r._gl._depth_pass = lambda *a: passes.append(1) or depth_pass(*a)
+        views = list(toy_views(toy_houses))
+        for house, _, camera in views:
+            camera = camera.resized(W, H)
+            for a, b in zip(r.render_linear(house, camera), single.render_linear(house, camera)):
+                np.testing.assert_array_equal(a, b)
+            np.testing.assert_array_equal(r.render(house, camera), single.render(house, camera))
+    assert len(passes) == 2 * len(views)
+
+
+def test_depth_prepass_keeps_the_first_of_coincident_surfaces():
+    """Two boxes on the same place, red drawn before green: at equal depth the single pass
+    keeps the first fragment (GL_LESS), and so must the pre-pass's shading pass (a stencil;
+    with GL_LEQUAL alone the last one drawn would show)."""
+    house = boxed_room()
+    for name, colour in (("red", (0.8, 0.05, 0.05, 1.0)), ("green", (0.05, 0.8, 0.05, 1.0))):
+        box_instance(house, name, 1, (1.0, 1.0, 1.0), (0.0, 0.5, 1.0)).materials = (Material(colour),)
+    camera = look_at_camera([0.0, 1.5, -1.2], [0.0, -0.4, 1.0], width=64, height=48)
+    out = {}
+    for prepass in (False, True):
+        with Renderer(64, 48, config=RenderConfig(flat=True)) as r:
+            r._gl.depth_prepass = prepass
+            out[prepass] = r.render_linear(house, camera)[0]
+    box = out[False][..., 0] > 2 * out[False][..., 1]  # red wins in the single pass
+    assert box.mean() > 0.05
+    np.testing.assert_array_equal(out[True], out[False])
+
+
+@needs_shared(BREAKFAST_ROOM)
+def test_depth_prepass_changes_no_pixel_of_a_real_scene():
+    """The breakfast room (1 M triangles, textures, many lights) forced through the pre-pass."""
+    house = load(BREAKFAST_ROOM)
+    cameras, _ = sample_cameras(house, 2, np.random.default_rng(3), tracer=HouseTracer(house))
+    with Renderer(320, 240) as r, Renderer(320, 240) as single:
+        r._gl.depth_prepass, single._gl.depth_prepass = True, False
+        for camera in cameras:
+            np.testing.assert_array_equal(r.render(house, camera), single.render(house, camera))
