@@ -28,7 +28,9 @@ chromaticities are within ``--chroma`` (0.05, the largest of |Δr|, |Δg|) and w
 brightnesses are within ``--stops`` (1) of each other, with the medians; then the median wall
 noise of both (median |Y − 5×5 median(Y)| over wall pixels 3 px inside their region, Y on
 0–255) and, by the same measure, the texture detail of their floors (the grain of a
-laminate: what the denoiser must keep). ``--regions`` lists every region (its instance's name and label from the house),
+laminate: what the denoiser must keep), and the share of the window regions' pixels that are
+white (255, 255, 255) and near white (every channel at least 245) in both, per view: where
+the outdoors is burnt out. ``--regions`` lists every region (its instance's name and label from the house),
 worst brightness first. ``--figure PNG`` writes the views side by side: the store's frame,
 each ``--with`` store's, then PBRS's, one row per view. A view whose PBRS image is missing is
 counted and skipped.
@@ -128,6 +130,9 @@ class Comparison:
     #: the same measure over the floors (texture detail)
     detail_ours: list[float] = field(default_factory=list)
     detail_theirs: list[float] = field(default_factory=list)
+    #: per view with a window region: (camera, share of its pixels white (255, 255, 255)
+    #: here, in PBRS, share near white (every channel >= 245) here, in PBRS)
+    window_white: list[tuple[int, float, float, float, float]] = field(default_factory=list)
     views: int = 0
     missing: int = 0
     #: (house, camera, ours (H, W, 3) uint8, PBRS resized to ours) per compared view
@@ -185,6 +190,10 @@ def compare(store_path: str, pbrs: Path, pattern: str | None = None, min_pixels:
             })
         wall = (instance[0] < 0) & (category[2] == NYU40_IDS["wall"])
         floor = (instance[0] < 0) & (category[2] == NYU40_IDS["floor"])
+        window = (instance[0] < 0) & (category[2] == NYU40_IDS["window"])
+        if window.any():
+            out.window_white.append((camera, *(float((image[window] >= level).all(-1).mean())
+                                               for level in (255, 245) for image in (ours, theirs))))
         for image, noise_into, detail_into in ((ours, out.noise_ours, out.detail_ours),
                                                (theirs, out.noise_theirs, out.detail_theirs)):
             noise, detail = wall_noise(image, wall), wall_noise(image, floor)
@@ -263,6 +272,11 @@ def main() -> None:
     if result.detail_ours:
         print(f"floor texture detail (the same measure): {np.median(result.detail_ours):.2f} here, "
               f"{np.median(result.detail_theirs):.2f} PBRS")
+    for name, k in (("white (255, 255, 255)", 1), ("near white (all >= 245)", 3)):
+        if result.window_white:
+            per = ", ".join(f"{w[0]}: {w[k]:.0%} / {w[k + 1]:.0%}" for w in result.window_white)
+            print(f"window pixels {name}, here / PBRS: {np.mean([w[k] for w in result.window_white]):.1%} / "
+                  f"{np.mean([w[k + 1] for w in result.window_white]):.1%} (per camera {per})")
     if args.regions:
         names: dict[str, list] = {}
         print(f"{'camera':>6} {'kind':<10} {'pixels':>6} {'dchroma':>7} {'stops':>6}  instance")
@@ -277,7 +291,8 @@ def main() -> None:
     if args.json:
         args.json.write_text(json.dumps({"table": table, "rows": result.rows,
                                          "noise": [result.noise_ours, result.noise_theirs],
-                                         "floor_detail": [result.detail_ours, result.detail_theirs]}, indent=1))
+                                         "floor_detail": [result.detail_ours, result.detail_theirs],
+                                         "window_white": result.window_white}, indent=1))
     if args.figure:
         columns = [[f[2] for f in result.frames]]
         for other in args.also:

@@ -53,6 +53,16 @@ def test_the_same_frames_agree_in_every_region(compare, small_store, tmp_path):
     for row in table:
         assert row["chroma_within"] == row["stops_within"] == 1.0, row
     assert all(abs(r["stops"]) < 0.05 and r["chroma"] < 0.01 for r in result.rows)
+    # windows burnt out as much here as there (the share of their pixels at or near white)
+    assert result.window_white and all(w[1] == w[2] and w[3] == w[4] for w in result.window_white)
+
+
+def test_window_white_counts_burnt_out_windows(compare, small_store, tmp_path):
+    """A reference brighter by 4× (clipped) has more window pixels at and near white."""
+    _write_frames(small_store, tmp_path, "{house}/{camera:06d}_mlt.png", tint=(4.0, 4.0, 4.0))
+    result = compare.compare(str(small_store), tmp_path, min_pixels=5)
+    assert sum(w[2] for w in result.window_white) > sum(w[1] for w in result.window_white)
+    assert all(w[4] >= w[3] and w[4] >= w[2] for w in result.window_white)
 
 
 def test_a_tinted_reference_fails_colour_not_layout(compare, small_store, tmp_path):

@@ -39,7 +39,7 @@ from sceneforge.render import (
 )
 from sceneforge.render.lights import WINDOW_CONE, room_albedo, room_ambient
 from sceneforge.render.sky import window_colour
-from sceneforge.render.tonemap import KEY, aces, auto_exposure, encode, encoding_thresholds
+from sceneforge.render.tonemap import KEY, SOFT_KNEE, aces, auto_exposure, encode, encoding_thresholds, soft
 
 from .conftest import BREAKFAST_ROOM, box_instance, box_room, needs_shared
 
@@ -456,16 +456,27 @@ def test_auto_exposure_is_invariant_to_scaling_every_light():
 
 
 def test_tone_curve():
-    """ACES maps 0 to 0 and is increasing, white only past ~7.2; the sRGB encoding is exact;
-    pixels that see nothing get the background."""
+    """ACES maps 0 to 0 and is increasing, white only past ~7.2; the default, soft, is the
+    identity up to its knee and rolls off above it with no kink, below 1 for any finite
+    value; the sRGB encoding is exact; pixels that see nothing get the background."""
     x = np.linspace(0, 10, 1001)
     y = aces(x)
     assert y[0] == 0 and (np.diff(y[x < 7.0]) > 0).all() and y[x > 7.3].min() == 1.0 and y[x < 7.0].max() < 1.0
     np.testing.assert_allclose(aces(1e-6) / 1e-6, 0.03 / 0.14, rtol=1e-3)
+    assert RenderConfig().tone == "soft" and SOFT_KNEE == 0.8
+    x = np.concatenate([np.linspace(0, 100, 100_001), [1e3, 1e6]])
+    y = soft(x)
+    np.testing.assert_array_equal(y[x <= SOFT_KNEE], x[x <= SOFT_KNEE])
+    assert (np.diff(y) > 0).all() and y.max() < 1.0 and y[-1] > 0.9999
+    slope = np.diff(y) / np.diff(x)
+    np.testing.assert_allclose(slope[(x[:-1] > SOFT_KNEE - 0.01) & (x[:-1] < SOFT_KNEE + 0.01)], 1.0, atol=0.2)
+    assert 0.95 < soft(2.0) < soft(4.0) < soft(8.0) < 1.0  # highlights graded, not clipped
     radiance = np.array([[[0.5, 0.5, 0.5], [2.0, 0.0, 1.0]]])
     seen = np.array([[True, False]])
     out = tonemap(radiance, seen, exposure=None, background=(0.0, 0.5, 1.0))
     np.testing.assert_array_equal(out[0, 1], [0, 128, 255])
+    np.testing.assert_array_equal(out[0, 0], np.round(255 * linear_to_srgb(KEY)))  # mid-grey stays 18 %
+    out = tonemap(radiance, seen, exposure=None, tone="aces")
     np.testing.assert_array_equal(out[0, 0], np.round(255 * linear_to_srgb(aces(KEY))))
     with pytest.raises(ValueError, match="unknown tone curve 'gamma'"):
         tonemap(radiance, seen, tone="gamma")
@@ -473,7 +484,7 @@ def test_tone_curve():
     rng = np.random.default_rng(0)
     radiance = rng.gamma(0.7, 1.0, (200, 300, 3)).astype(np.float32)
     seen = np.ones((200, 300), bool)
-    for tone, curve in (("aces", aces), ("clip", lambda v: np.clip(v, 0, 1))):
+    for tone, curve in (("aces", aces), ("clip", lambda v: np.clip(v, 0, 1)), ("soft", soft)):
         fast = tonemap(radiance, seen, exposure=0.8, tone=tone).astype(int)
         reference = np.round(255 * linear_to_srgb(curve(0.8 * radiance.astype(np.float64))))
         assert np.abs(fast - reference).max() <= 1 and (fast == reference).mean() > 0.999
@@ -490,14 +501,18 @@ def test_encoding_thresholds_count_to_the_byte():
     np.testing.assert_array_equal(np.searchsorted(thresholds, y, side="right"), encode(y))
 
 
-#: (config, antialias) of the GPU tone-mapping check: auto and fixed exposure, either curve,
-#: a background colour, shadow maps, 4× multisampling
+#: (config, antialias) of the GPU tone-mapping check: auto and fixed exposure, each curve
+#: (the default, soft; at exposure 0.05 most values lie on its shoulder), a background
+#: colour, shadow maps, 4× multisampling
 GPU_TONE_CASES = {
     "auto": (RenderConfig(), False),
     "fixed": (RenderConfig(exposure=0.02), False),
     "clip, background": (RenderConfig(tone="clip", background=(0.2, 0.5, 1.0)), False),
     "fixed clip, background": (RenderConfig(exposure=0.01, tone="clip", background=(1.0, 0.25, 0.0)), False),
     "shadows, antialias": (RenderConfig(shadows=True), True),
+    "fixed soft, background": (RenderConfig(exposure=0.05, tone="soft", background=(0.0, 0.5, 1.0)), False),
+    "aces": (RenderConfig(tone="aces"), False),
+    "fixed aces": (RenderConfig(exposure=0.02, tone="aces"), False),
 }
 #: the most channel values of the GPU pass that may differ (by one level) from numpy's
 GPU_TONE_DIFFERING = 1e-3

@@ -89,22 +89,17 @@ def test_indirect_light_grows_with_the_rooms_albedo():
     assert levels[0.3] < levels[0.6] < levels[1.0]
 
 
-def test_the_outdoors_shows_through_a_windows_glass():
-    """A window with glass (a face group of opacity < 1, as SUNCG's window models have):
-    the raster mode draws its frame lit like any surface and, through the glass, the
-    outdoors (the dome of :func:`sky.dome`: the sky's radiance × ``sky_luminance`` along
-    each ray); the window still lights the room. The layers see the glass as before."""
-    pytest.importorskip("pyrender")
+def _glazed_window_house():
+    """A floor and a window at z = 2 facing -z, its frame (opaque) under its pane (glass,
+    d = 0.5), nothing else; a camera facing it; the (H, W) pixels that see the pane."""
     from sceneforge.cameras import look_at_camera
     from sceneforge.houses import House, Room, make_instance
-    from sceneforge.render import Renderer
     from sceneforge.render.lights import glazed_windows
 
     house = House(id="glazed", instances=[], rooms=[Room("a", "room", 0)])
     make_instance(house, name="floor", category=2, label="floor", room_id="a",
                   vertices=[[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2]], faces=[[0, 2, 1], [0, 3, 2]],
                   material=Material((0.5, 0.5, 0.5, 1.0)))
-    # a window at z = 2 facing -z: the frame (opaque) under the pane (glass, d = 0.5)
     window = make_instance(
         house, name="window", category=9, label="window", room_id="a",
         vertices=[[-1, 0.5, 2], [1, 0.5, 2], [1, 0.8, 2], [-1, 0.8, 2], [1, 2.5, 2], [-1, 2.5, 2]],
@@ -113,12 +108,26 @@ def test_the_outdoors_shows_through_a_windows_glass():
         face_material=np.array([0, 0, 1, 1], np.int32))
     assert glazed_windows(house) == {window.id}
     camera = look_at_camera([0, 1.5, -1.5], [0, 0.05, 1], width=64, height=48)
+    origins, directions, _ = camera.rays()
+    hit = origins + ((2.0 - origins[:, 2]) / directions[:, 2])[:, None] * directions
+    pane = ((hit[:, 1] > 0.85) & (hit[:, 1] < 2.45) & (np.abs(hit[:, 0]) < 0.95)).reshape(48, 64)
+    return house, camera, pane
+
+
+def test_the_outdoors_shows_through_a_windows_glass():
+    """A window with glass (a face group of opacity < 1, as SUNCG's window models have):
+    the raster mode draws its frame lit like any surface and, through the glass, the
+    outdoors (the dome of :func:`sky.dome`: the sky's radiance × ``sky_luminance`` along
+    each ray); the window still lights the room. The layers see the glass as before."""
+    pytest.importorskip("pyrender")
+    from sceneforge.render import Renderer
+
+    house, camera, pane = _glazed_window_house()
     config = RenderConfig(sky_luminance=900.0)
     with Renderer(64, 48, config=config) as r:
         radiance, seen = r.render_linear(house, camera)
     origins, directions, _ = camera.rays()
     hit = origins + ((2.0 - origins[:, 2]) / directions[:, 2])[:, None] * directions
-    pane = ((hit[:, 1] > 0.85) & (hit[:, 1] < 2.45) & (np.abs(hit[:, 0]) < 0.95)).reshape(seen.shape)
     frame = ((hit[:, 1] > 0.55) & (hit[:, 1] < 0.75) & (np.abs(hit[:, 0]) < 0.95)).reshape(seen.shape)
     assert pane.sum() > 100 and frame.sum() > 20 and seen[pane].all()
     expected = sky.radiance(directions.reshape(seen.shape + (3,))[pane]) * 900.0
@@ -126,3 +135,26 @@ def test_the_outdoors_shows_through_a_windows_glass():
     assert (radiance[frame] @ Y).max() < 0.2 * (expected @ Y).min()  # the frame is lit, not a panel
     (light,) = house_lights(house, config)
     assert light.source == "window"  # the daylight still comes in
+
+
+def test_zbuffer_depth_sees_a_windows_glass():
+    """``Renderer.depth`` (the z-buffer) sees a glazed window's glass as the layers do, not
+    the outdoors' dome behind it that the RGB shows through the glass; and the RGB after it
+    is the RGB before it."""
+    pytest.importorskip("pyrender")
+    from sceneforge.layers import frontal_layers
+    from sceneforge.render import Renderer
+
+    house, camera, pane = _glazed_window_house()
+    with Renderer(64, 48, config=RenderConfig(sky_luminance=900.0)) as r:
+        before = r.render_linear(house, camera)
+        depth = r.depth(house, camera)
+        after = r.render_linear(house, camera)
+    traced = frontal_layers(house, camera).traditional_depth
+    assert pane.sum() > 100 and np.isfinite(traced[pane]).all()
+    assert np.isnan(traced).any() and (np.isnan(depth) == np.isnan(traced)).all()  # no dome
+    seen = np.isfinite(traced)
+    assert (np.abs(depth[seen] - traced[seen]) < 1e-3).all()
+    for a, b in zip(before, after, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert before[1][pane].all() and before[1].all()  # the RGB sees the dome everywhere

@@ -32,10 +32,12 @@ Lambertian panel's far field), emission is added once (pyrender squares the fact
 the output is the linear radiance itself, into a float framebuffer; and its light loops
 are not unrolled (:data:`_LOOP_PATCHES`). Every view's radiance then goes through the
 exposure and tone-mapping step both modes share (:func:`sceneforge.render.tonemap.tonemap`),
-applied where it was drawn (see "Tone mapping" below). A window with glass (a face group of opacity
-below 1) is drawn without its glass, its frame lit like any surface, and through it the
-outdoors shows: a dome around the house with the radiance of :mod:`sceneforge.render.sky`
-as vertex colours (unlit); other windows are drawn emitting the outdoors' mean radiance.
+applied where it was drawn (see "Tone mapping" below). A window with glass (a face group
+of opacity below 1) is drawn without its glass (in the RGB; the z-buffer of
+:meth:`Renderer.depth` has it, and not the dome, as the layers do), its frame lit like any
+surface, and through it the outdoors shows: a dome around the house with the radiance of
+:mod:`sceneforge.render.sky` as vertex colours (unlit); other windows are drawn emitting
+the outdoors' mean radiance.
 A room's geometry is one pyrender mesh lit by that room's lights only (and those of a room
 drawn over the same space, :func:`~sceneforge.render.lights.light_rooms`; up to
 :data:`MAX_LIGHTS` of each kind, nearest its centre first): light does not leak through
@@ -56,7 +58,7 @@ multiply-adds (OpenBLAS's) emulated in double and the sRGB encoding made exact b
 thresholds (:func:`~sceneforge.render.tonemap.encoding_thresholds`), so the bytes are
 ``tonemap(render_linear(...))``'s: identical on Mesa's llvmpipe (the toy houses in
 tests/test_render.py; the breakfast room too, at 1280×960); a device whose division is not
-correctly rounded (the ACES curve's one division) may put a value one level off where
+correctly rounded (the curves' divisions) may put a value one level off where
 it falls within a float32 rounding of one of the thresholds. ``gpu_tonemap=False`` reads
 the float radiance back and applies numpy's :func:`~sceneforge.render.tonemap.tonemap`.
 On llvmpipe the passes run on the CPU like the rest, in about numpy's CPU time but on every
@@ -150,9 +152,11 @@ class RenderConfig:
     #: exposure (radiance × it before the tone curve); None: automatic per view, the
     #: median luminance of the pixels that see something lands at 18 % grey
     exposure: float | None = None
-    #: tone curve after the exposure: ``aces`` (filmic: a soft shoulder, white at about 40×
-    #: mid-grey) or ``clip`` (none: exposed values clipped to [0, 1])
-    tone: typing.Literal["aces", "clip"] = "aces"
+    #: tone curve after the exposure: ``soft`` (linear, as PBRS's images, up to 0.8 = 4.4×
+    #: mid-grey, then a shoulder that rolls highlights off towards white instead of clipping
+    #: them), ``aces`` (filmic: a toe that darkens dark surfaces, white at about 40× mid-grey)
+    #: or ``clip`` (none: exposed values clipped to [0, 1])
+    tone: typing.Literal["soft", "aces", "clip"] = "soft"
     #: raster only, for checking materials: no lights, every surface shows ``ambient`` × its
     #: base colour as radiance (with ``exposure`` 1 and ``tone`` clip: exactly its colour)
     flat: bool = False
@@ -268,6 +272,19 @@ def house_batches(house: "House", emission: dict[int, float] | None = None,
               key[5])
         for key, (material, p, n, c, uv) in parts.items()
     ]
+
+
+def _glass_triangles(house: "House", glazed: frozenset[int]) -> np.ndarray:
+    """(n, 3, 3) float64 world corners of the glass (face groups of opacity below 1) of the
+    windows ``glazed``: what :func:`house_batches` leaves out of them."""
+    out = [np.zeros((0, 3, 3))]
+    for inst in house.instances:
+        if inst.id not in glazed:
+            continue
+        group = inst.face_materials()
+        clear = [g for g, m in enumerate(inst.materials) if m.base_color[3] < 1.0]
+        out.append(inst.vertices[inst.faces[np.isin(group, clear)]])
+    return np.concatenate(out)
 
 
 def _texels(house: "House", texture) -> np.ndarray:
@@ -386,9 +403,11 @@ void main() {
 #: pass 2: the bytes of tonemap.tonemap
 _TONE_FRAG = _PIXEL + """
 uniform float exposure;      // float32(e), as tonemap multiplies
-uniform int aces;            // 1: the ACES fit, 0: clip
+uniform int tone;            // 0: clip, 1: the ACES fit, 2: soft
 uniform vec4 curve;          // a, b, c, d of tonemap.ACES in float32
 uniform float curve_e;       // e
+uniform float knee;          // soft: tonemap.SOFT_KNEE in float32
+uniform float knee_span;     // soft: 1 - knee, in float32 as tonemap subtracts
 uniform float bounds[257];   // [0] -1, [j] tonemap.encoding_thresholds()[j - 1], [256] 2
 uniform vec3 background;     // the bytes of pixels that see nothing
 out vec4 srgb;               // bytes / 255 into an RGBA8 target: exactly the bytes
@@ -398,8 +417,13 @@ void main() {
     // tonemap's float32 steps in its order; `precise`: no fused multiply-adds
     precise vec3 x = max(c.rgb * exposure, vec3(0.0));
     precise vec3 y = x;
-    if (aces != 0)
+    if (tone == 1) {
         y = (x * (curve.x * x + curve.y)) / (x * (curve.z * x + curve.w) + curve_e);
+    } else if (tone == 2) {
+        precise vec3 over = max(x - knee, vec3(0.0));
+        precise vec3 shoulder = knee + over / (1.0 + over / knee_span);
+        y = mix(shoulder, x, lessThanEqual(x, vec3(knee)));
+    }
     y = min(y, vec3(1.0));
     // sRGB byte: pow's estimate, within a level, then made exact by the thresholds (the
     // byte is the number of thresholds at or below y)
@@ -426,7 +450,7 @@ class _TonePass:
     """
 
     def __init__(self, width: int, height: int, config: RenderConfig):
-        from .tonemap import ACES, LUMINANCE, background_bytes, encoding_thresholds
+        from .tonemap import ACES, LUMINANCE, SOFT_KNEE, background_bytes, encoding_thresholds
 
         GL = _gl().GL
         self.width, self.height = width, height
@@ -441,7 +465,9 @@ class _TonePass:
         GL.glUseProgram(self._luminance)
         GL.glUniform3f(self._uniform(self._luminance, "weights"), *(float(w) for w in LUMINANCE.astype(f32)))
         GL.glUseProgram(self._tone)
-        GL.glUniform1i(self._uniform(self._tone, "aces"), int(config.tone == "aces"))
+        GL.glUniform1i(self._uniform(self._tone, "tone"), {"clip": 0, "aces": 1, "soft": 2}[config.tone])
+        GL.glUniform1f(self._uniform(self._tone, "knee"), float(f32(SOFT_KNEE)))
+        GL.glUniform1f(self._uniform(self._tone, "knee_span"), float(f32(1.0) - f32(SOFT_KNEE)))
         a, b, c, d, e = (float(f32(v)) for v in ACES)
         GL.glUniform4f(self._uniform(self._tone, "curve"), a, b, c, d)
         GL.glUniform1f(self._uniform(self._tone, "curve_e"), e)
@@ -679,9 +705,15 @@ def _gl() -> SimpleNamespace:
             # pyrender's GL_LESS: the same pixels, each shaded once. pyrender draws the
             # farthest meshes first, so without it a pixel is shaded 1.5-4 times (llvmpipe
             # runs the shader on the CPU). Not for translucent meshes (blending needs every
-            # layer), depth-only or segmentation renders.
+            # layer) or segmentation renders; a depth-only render is the first pass alone.
             RenderFlags = pyrender.RenderFlags
-            if (not self._prepass_pays(scene) or flags & (RenderFlags.DEPTH_ONLY | RenderFlags.SEG)
+            if flags & RenderFlags.DEPTH_ONLY:
+                # the z-buffer alone, both sides of every face: pyrender's depth-only pass
+                # culls back faces whatever the flags, where the layers see both sides (a
+                # window's glass seen from inside, its winding facing out)
+                self._depth_pass(scene, flags)
+                return self._read_main_framebuffer(scene, flags)
+            if (not self._prepass_pays(scene) or flags & RenderFlags.SEG
                     or any(node.mesh.is_transparent for node in scene.mesh_nodes)):
                 return super()._forward_pass(scene, flags, seg_node_map)
             self._depth_pass(scene, flags)
@@ -945,6 +977,7 @@ class Renderer(ToneMapped):
         self._house: House | None = None
         self._scene = None
         self._camera_node = None
+        self._see_through = None  # (the outdoors' dome, the glazed windows' glass) mesh nodes
 
     # -- public API ---------------------------------------------------------------------
 
@@ -974,11 +1007,17 @@ class Renderer(ToneMapped):
 
         Single-sampled, this is the first hit of the ray through each pixel centre (the
         layers' ``traditional_depth`` up to the depth buffer's resolution, see :data:`NEAR`);
-        with ``antialias`` it comes from one of the four samples of each pixel.
+        with ``antialias`` it comes from one of the four samples of each pixel. A glazed
+        window's glass is a surface here, as in the layers, though the RGB sees the outdoors
+        through it; the outdoors' dome is not.
         """
         flags = self._prepare(house, camera)
-        depth = np.array(self._gl.render(self._scene, flags | _gl().pyrender.RenderFlags.DEPTH_ONLY),
-                         dtype=np.float32)
+        self._show_glass(True)
+        try:
+            depth = np.array(self._gl.render(self._scene, flags | _gl().pyrender.RenderFlags.DEPTH_ONLY),
+                             dtype=np.float32)
+        finally:
+            self._show_glass(False)
         depth[depth <= 0] = np.nan  # pyrender writes 0 where the depth buffer stayed clear
         return depth
 
@@ -1023,6 +1062,15 @@ class Renderer(ToneMapped):
         RenderFlags = _gl().pyrender.RenderFlags
         return RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
 
+    def _show_glass(self, depth: bool) -> None:
+        """Show the glazed windows' glass and hide the outdoors' dome (``depth``), or the
+        other way round (colour, the default)."""
+        if self._see_through is not None:
+            sky_node, glass_node = self._see_through
+            sky_node.mesh.is_visible = not depth
+            if glass_node is not None:
+                glass_node.mesh.is_visible = depth
+
     def _colour_flags(self, house: "House", camera: "Camera") -> int:
         """:meth:`_prepare`, with the shadow maps' flag when ``config.shadows``."""
         flags = self._prepare(house, camera)
@@ -1038,6 +1086,7 @@ class Renderer(ToneMapped):
             # pyrender frees the GL objects of whatever its context holds that a scene lacks
             self._gl._update_context(pyrender.Scene(), pyrender.RenderFlags.NONE)
         self._scene = self._house = None
+        self._see_through = None
         self._gl._lit.clear()
         config = self.config
         lights = [] if config.flat else house_lights(house, config)
@@ -1100,9 +1149,22 @@ class Renderer(ToneMapped):
                                         np.ones((3 * len(f), 1))], axis=1).astype(np.float32),
                 material=pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0,
                                                             roughnessFactor=1.0, doubleSided=True))
-            scene.add(pyrender.Mesh(primitives=[dome]), name="sky", pose=_translation(centre))
+            sky_node = scene.add(pyrender.Mesh(primitives=[dome]), name="sky", pose=_translation(centre))
             scene.room_lights["sky"] = []
             scene.room_ambient["sky"] = np.ones(3)
+            # the glass, for depth() only: the z-buffer sees it, as the layers do, and not
+            # the dome behind it (hidden from every colour pass)
+            glass = _glass_triangles(house, glazed)
+            glass_node = None
+            if len(glass):
+                origin = glass.reshape(-1, 3).mean(axis=0)
+                pane = pyrender.Primitive(
+                    positions=(glass - origin).reshape(-1, 3).astype(np.float32),
+                    material=pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0),
+                                                                doubleSided=True))
+                glass_node = scene.add(pyrender.Mesh(primitives=[pane], is_visible=False), name="glass",
+                                       pose=_translation(origin))
+            self._see_through = (sky_node, glass_node)
         self._camera_node = scene.add(gl.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=NEAR, zfar=FAR))
         # shadow maps frame the scene's bounds; pyrender's own computation uses np.infty,
         # which NumPy 2 removed

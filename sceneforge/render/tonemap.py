@@ -11,12 +11,21 @@ candela, cd/m²) for every pixel, and :func:`tonemap` turns it into the stored i
    brightest and darkest half-views alike (a lamp, a window, a black sofa), and scaling
    every light of the house by the same factor leaves the image unchanged. A number is
    a fixed exposure instead (radiance × it, the same for every view).
-2. **Tone curve**: ``RenderConfig.tone`` ``"aces"`` (default) is Narkowicz's fit of the
-   ACES filmic curve, applied per channel to ``e × radiance``: a gentle toe, mid-grey
-   0.18 → 0.27, and a soft shoulder that reaches white only at about 40× mid-grey
-   (``e × radiance`` ≈ 7.2), so surfaces near a lamp stay graded instead of clipping. ``"clip"`` is no curve (``e × radiance`` clipped to [0, 1]): with
+2. **Tone curve**, applied per channel to ``x = e × radiance`` (``RenderConfig.tone``):
+   ``"soft"`` (default) is linear, ``y = x``, up to the knee :data:`SOFT_KNEE` (0.8: 4.4×
+   mid-grey), and above it rolls off towards white,
+   ``y = k + (x − k) / (1 + (x − k) / (1 − k))`` (slope 1 at the knee, so no kink; 1 only
+   as x → ∞; the byte 255 from x ≈ 9.6, 53× mid-grey). Below the knee it is
+   PBRS's response (Mitsuba's 8-bit output is a plain clamp and the sRGB encoding): dark
+   surfaces and mid-tones keep their ratios and their colour (the chromaticity of a region
+   unchanged); above it a lamp's surroundings or a window are graded instead of clipped.
+   ``"aces"`` is Narkowicz's fit of the ACES filmic curve: a toe that darkens dark
+   surfaces (a surface at a tenth of mid-grey comes out at a thirtieth, about 1.5 stops
+   under PBRS's), mid-grey 0.18 → 0.27, and a soft shoulder that reaches white at about
+   40× mid-grey (x ≈ 7.2). ``"clip"`` is no curve (``x`` clipped to [0, 1]): with
    ``exposure=1`` a surface of radiance equal to its base colour shows exactly that colour
-   (for checking materials and textures).
+   (for checking materials and textures). The default was chosen against PBRS's images
+   (docs/rgb.md, "Against PBRS").
 3. **sRGB encoding** (IEC 61966-2-1) and rounding to bytes; pixels that see nothing get
    ``RenderConfig.background`` exactly.
 
@@ -46,8 +55,10 @@ KEY = 0.18
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: Narkowicz's ACES fit: (x (a x + b)) / (x (c x + d) + e)
 ACES = (2.51, 0.03, 2.43, 0.59, 0.14)
+#: the knee of the ``soft`` curve: linear (y = x) up to it, a shoulder above it
+SOFT_KNEE = 0.8
 #: tone curves of ``RenderConfig.tone``
-TONES = ("aces", "clip")
+TONES = ("soft", "aces", "clip")
 
 
 def aces(x):
@@ -55,6 +66,14 @@ def aces(x):
     a, b, c, d, e = ACES
     x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
     return np.clip(x * (a * x + b) / (x * (c * x + d) + e), 0.0, 1.0)
+
+
+def soft(x, knee: float = SOFT_KNEE):
+    """The ``soft`` curve of exposed linear values: y = x up to ``knee``, above it
+    ``knee + (x - knee) / (1 + (x - knee) / (1 - knee))`` (slope 1 at the knee, 1 only as x → ∞)."""
+    x = np.maximum(np.asarray(x, dtype=np.float64), 0.0)
+    over = np.maximum(x - knee, 0.0)
+    return np.where(x <= knee, x, knee + over / (1.0 + over / (1.0 - knee)))
 
 
 def auto_exposure(radiance: np.ndarray, seen: np.ndarray) -> float:
@@ -74,7 +93,7 @@ def exposure_of_luminance(luminance: np.ndarray) -> float:
     return KEY / middle if middle > 0 else 1.0
 
 
-def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = None, tone: str = "aces",
+def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = None, tone: str = "soft",
             background=(0.0, 0.0, 0.0)) -> np.ndarray:
     """(H, W, 3) uint8 sRGB image of (H, W, 3) linear ``radiance`` (module docs).
 
@@ -83,7 +102,7 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
     tone       : one of :data:`TONES`
     background : sRGB colour in [0, 1] of the pixels that see nothing
 
-    The curve and the encoding are evaluated in float32 (:func:`aces` and
+    The curve and the encoding are evaluated in float32 (:func:`soft`, :func:`aces` and
     :func:`sceneforge.colour.linear_to_srgb` are the float64 references; the two agree to a level of 8-bit
     rounding), which takes a fifth of the time.
     """
@@ -98,6 +117,10 @@ def tonemap(radiance: np.ndarray, seen: np.ndarray, *, exposure: float | None = 
         a, b, c, d, k = (f(v) for v in ACES)
         y = x * (a * x + b)
         y /= x * (c * x + d) + k
+    elif tone == "soft":
+        k = f(SOFT_KNEE)
+        over = np.maximum(x - k, f(0.0))  # 0 below the knee, where y = x
+        y = np.where(x <= k, x, k + over / (f(1.0) + over / (f(1.0) - k)))
     else:
         y = x
     np.minimum(y, f(1.0), out=y)
