@@ -26,10 +26,19 @@ import warnings
 from pathlib import Path
 
 import torch
-from bench_learn import synthetic_views  # benchmarks/, the script's folder, is on sys.path
+from bench_learn import synthetic_batch  # benchmarks/, the script's folder, is on sys.path
 
 import sceneforge.learn.eft as eft_module
 from sceneforge.learn.eft import EFTConfig, EpipolarFeatureTransformer, segment_pairs
+from sceneforge.learn.stages import geometry
+
+
+def synthetic_views(B: int, H: int, W: int, R: int):
+    """The EFT geometry and the (D1, D2), (D3, D4) layer pairs of ``bench_learn.py``'s
+    synthetic batch."""
+    batch = synthetic_batch(B, H, W, R)
+    depth = batch["depth"]
+    return geometry(batch, (H, W), R), (depth[:, 0], depth[:, 1]), (depth[:, 2], depth[:, 3])
 
 
 def previous_transfer_volume(features, geom, near, far, config=None):

@@ -212,6 +212,24 @@ def test_reading_a_damaged_file_of_any_array_is_one_line_naming_it(clean, tmp_pa
         assert ("is missing" if how == "deleted" else "cannot be decoded") in line, line
 
 
+@pytest.mark.parametrize("how", DAMAGE)
+def test_reading_whole_views_of_a_damaged_file_is_the_same_one_line(clean, tmp_path, how):
+    """Training reads views through ``array.views`` (the shard files read without zarr):
+    a damaged file fails as the same one line."""
+    for array, key in _damageable(clean).items():
+        if array.startswith("mesh/"):
+            continue
+        store = tmp_path / how / array.replace("/", "_") / "s.zarr"
+        shutil.copytree(clean, store)
+        DAMAGE[how](store / key)
+        s = open_store(str(store))
+        with pytest.raises(DamagedStoreError) as e:
+            s.array(array).views(range(len(s)))
+        line = str(e.value)
+        assert "\n" not in line and key in line and "sceneforge validate" in line, line
+        assert ("is missing" if how == "deleted" else "cannot be decoded") in line, line
+
+
 def test_a_damaged_store_is_one_red_line_in_the_cli(store):
     DAMAGE["truncated"](store / "depth" / "c" / "1" / "0" / "0" / "0")
     one_red_line(run("show", store, "--view", 5, "-o", store.parent / "p.png"),

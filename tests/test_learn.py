@@ -43,7 +43,15 @@ from sceneforge.learn.networks import (  # noqa: E402
 from sceneforge.learn.predict import predict, proposed_overhead_cameras  # noqa: E402
 from sceneforge.learn.stages import REGISTRY, get_stage, overhead_input  # noqa: E402
 from sceneforge.learn.train import STAGES, TrainConfig, load_run, read_config, read_metrics, train  # noqa: E402
-from sceneforge.learn.trainer import Checkpoint, EpochLoop, MetricsLog, Position, Trainer  # noqa: E402
+from sceneforge.learn.trainer import (  # noqa: E402
+    Checkpoint,
+    EpochLoop,
+    EpochSampler,
+    MetricsLog,
+    Position,
+    Trainer,
+    check_finite,
+)
 
 from .conftest import render_learn_store  # noqa: E402
 
@@ -380,8 +388,27 @@ def test_checkpoint_restores_the_trainer_and_survives_a_failed_save(tmp_path, mo
 def test_a_diverged_loss_is_an_expected_error():
     batch = next(iter(torch.utils.data.DataLoader(_Views(2), batch_size=2)))
     batch["rgb"][0, 0, 0, 0] = torch.nan
+    losses = _depth_trainer().step(batch, 7)  # the step waits for nothing: the loss stays on the device
+    assert torch.is_tensor(losses["loss"]) and not losses["loss"].requires_grad
     with pytest.raises(SceneforgeError, match="step 7: the loss is nan"):
-        _depth_trainer().step(batch, 7)
+        check_finite([(6, torch.tensor(1.0)), (7, losses["loss"])])
+
+
+def test_the_loop_stops_at_a_diverged_step_before_a_checkpoint_holds_its_weights(tmp_path):
+    views = _Views(8)
+    views.rgb[5, 0, 0, 0] = torch.nan
+    trainer = _depth_trainer(batch_size=2, epochs=1, log_every=100, checkpoint_every=1)
+    sampler = EpochSampler(8, trainer.config.seed, 2)
+    diverged = next(k for k, batch in enumerate(sampler) if 5 in batch)
+    checkpoint = Checkpoint(tmp_path / "checkpoint.pt")
+    with pytest.raises(SceneforgeError, match=f"step {diverged}: the loss is nan \\(diverged\\)"):
+        EpochLoop(trainer, views, None, 4, None, checkpoint).run(Position())
+    # a checkpoint after every step before it and none after
+    assert checkpoint.exists() == (diverged > 0)
+    if diverged:
+        state = checkpoint.load()
+        assert state["step"] == diverged
+        assert all(torch.isfinite(v).all() for v in state["models"]["depth"].values() if v.is_floating_point())
 
 
 def test_the_epoch_loop_logs_validates_and_checkpoints_on_schedule(tmp_path):
@@ -544,7 +571,7 @@ def test_every_net_overfits_a_fixed_batch_of_four_views(stage, store, frontal_ru
 
     start = trainer.loss(batch)[0].item()
     for step in range(200):
-        end = trainer.step(batch, step)["loss"]
+        end = float(trainer.step(batch, step)["loss"])
     # the loss the optimiser drives (training mode): with 4 views a BatchNorm's batch statistics
     # differ from its running ones, which eval mode uses, by more than the overfitted loss itself
     assert end <= 0.1 * start, (stage, start, end)

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="the learn extra (torch) is not installed")
@@ -84,6 +85,56 @@ def test_two_workers_give_the_batches_of_none_in_the_same_order(store, start):
             assert a.keys() == b.keys()
             for key in a:
                 torch.testing.assert_close(a[key], b[key], equal_nan=True, rtol=0, atol=0)
+
+
+def _reference_sample(store, view: int, fields) -> dict[str, np.ndarray]:
+    """A sample as it was read before batches were read at once: one zarr read per array of
+    the view (``store.view``), the targets made view by view."""
+    from sceneforge.evaluate.learning import seg_targets
+    from sceneforge.learn.dataset import EMPTY, SAMPLE_FIELDS, normalize_rgb, segmentation_target
+
+    raw = store.view(view)
+    out = {}
+    if "rgb" in fields:
+        out["rgb"] = normalize_rgb(raw["rgb"])
+    if "depth" in fields:
+        out["depth"] = raw["depth"].astype(np.float32)
+    if "seg" in fields:
+        out["seg"] = seg_targets(raw["category"][None], raw["depth"][None], EMPTY)[0]
+    if "overhead_height" in fields:
+        height, floor = raw["overhead_height"].astype(np.float32), np.isfinite(raw["overhead_depth"][4])
+        out["overhead_height"] = np.where(~np.isfinite(height) & floor, np.float32(0), height)
+        out["overhead_foreground"] = np.isfinite(height)
+    if "overhead_seg" in fields:
+        out["overhead_seg"] = segmentation_target(raw["overhead_category"],
+                                                  np.isnan(raw["overhead_depth"]).all(axis=0))
+    if "camera" in fields:
+        out.update({name: raw[name].astype(np.float64) for name in SAMPLE_FIELDS["camera"]})
+    return out
+
+
+def test_a_batch_read_at_once_is_its_views_read_one_by_one(store):
+    from sceneforge.store import open_store
+
+    fields = ("rgb", "depth", "seg", "overhead_height", "overhead_seg", "camera")
+    ds = StoreDataset(index_stores([store, store]), fields)
+    raw = open_store(store)
+    indices = [7, 0, 11, 3, 7, 6]  # both stores, out of order, a repeat
+    batch = ds.batch(indices)
+    assert batch["index"].tolist() == indices
+    for j, i in enumerate(indices):
+        for key, want in _reference_sample(raw, int(ds.index.view[i]), fields).items():
+            got = batch[key][j].numpy()
+            assert got.dtype == want.dtype and got.shape == want.shape, key
+            np.testing.assert_array_equal(got, want, err_msg=key)
+    # what a DataLoader does: __getitems__, collated; and one sample alone; and a Subset
+    collated = torch.utils.data.default_collate(ds.__getitems__(indices))
+    single = ds[indices[2]]
+    subset = next(iter(torch.utils.data.DataLoader(torch.utils.data.Subset(ds, indices), batch_size=6)))
+    for key in batch:
+        torch.testing.assert_close(collated[key], batch[key], equal_nan=True, rtol=0, atol=0)
+        torch.testing.assert_close(subset[key], batch[key], equal_nan=True, rtol=0, atol=0)
+        torch.testing.assert_close(single[key], batch[key][2], equal_nan=True, rtol=0, atol=0)
 
 
 def test_workers_fork_only_where_zarr_survives_it(monkeypatch):
@@ -161,8 +212,8 @@ def test_bf16_autocast_on_the_cpu_runs_the_nets_in_bf16_with_losses_close_to_flo
     conv.register_forward_hook(lambda m, i, o: dtypes.append(o.dtype))
     losses = {"off": [], "bf16": []}
     for _ in range(3):
-        losses["off"].append(full.step(batch, 0)["loss"])
-        losses["bf16"].append(half.step(batch, 0)["loss"])
+        losses["off"].append(float(full.step(batch, 0)["loss"]))
+        losses["bf16"].append(float(half.step(batch, 0)["loss"]))
     assert set(dtypes) == {torch.bfloat16}  # autocast was on
     assert all(p.dtype == torch.float32 for p in half.nets["depth"].parameters())  # the weights stay float32
     for a, b in zip(losses["off"], losses["bf16"]):

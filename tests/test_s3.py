@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -99,6 +100,11 @@ def test_a_render_to_s3_is_whole_valid_and_holds_the_local_arrays(s3, store, loc
     assert res.exit_code == 0 and res.output.strip() == f"{store}: valid (dataset store, 6 views)"
     digests = array_digests(store)
     assert {"rgb", "depth", "overhead_height"} <= digests.keys() and digests == local_digests
+    opened = open_store(store)  # whole views read from the shard objects by byte range, as zarr reads them
+    for name in ("depth", "category", "K"):
+        array = opened.array(name)
+        np.testing.assert_array_equal(array.views([5, 0, 3]), np.stack([array[5], array[0], array[3]]))
+        assert array._reader is not None
     files = keys(s3, "toy.zarr")
     assert files and not any("/_staging/" in k or k.endswith(".partial") for k in files)
     assert not s3.exists(f"{BUCKET}/toy.zarr.lock")  # released

@@ -19,6 +19,7 @@ from sceneforge.houses import BUNDLED_TOY, bundled_toy_dir, discover, load
 from sceneforge.pipeline import render_dataset
 from sceneforge.preview import layer_points
 from sceneforge.store import (
+    MANIFEST,
     array_digests,
     check_store,
     conventions_attrs,
@@ -173,6 +174,40 @@ def test_a_house_gets_the_same_cameras_alone_or_among_others(store_path, tmp_pat
 
 
 
+def _views_and_zarr(store, rows) -> None:
+    """Every per-view array's ``views(rows)`` against zarr's reads of the same rows."""
+    for name in store.names:
+        array = store.array(name)
+        fast, slow = array.views(rows), np.stack([np.asarray(array[r]) for r in rows])
+        assert fast.dtype == slow.dtype and fast.shape == slow.shape, name
+        if fast.dtype.kind == "f":
+            np.testing.assert_array_equal(fast, slow, err_msg=name)  # NaN where NaN
+        else:
+            assert (fast == slow).all(), name
+
+
+def test_whole_views_read_from_the_shard_files_are_zarrs(store_copy):
+    """``CheckedArray.views`` reads the shard files itself (not through zarr): the values zarr
+    reads in any order, also for a view whose chunk zarr never wrote (all fill values) and a
+    shard whose file is gone where the manifest records none."""
+    import zarr
+
+    zarr.open_group(str(store_copy), mode="r+")["depth"][1] = np.nan  # its chunk is dropped from shard 0
+    manifest = json.loads((store_copy / MANIFEST).read_text())
+    (store_copy / "category" / "c" / "1" / "0" / "0" / "0").unlink()
+    manifest["files"]["category/c/1/0/0/0"] = None  # a shard of fill values has no file
+    (store_copy / MANIFEST).write_text(json.dumps(manifest))
+    store = open_store(str(store_copy))
+    rows = [5, 0, 1, 5, 3, 2, 4]
+    _views_and_zarr(store, rows)
+    assert np.isnan(store.array("depth").views([1])).all() and (store.array("category").views([4, 5]) == 0).all()
+    assert store.array("depth")._reader is not None  # the shard files were read, not zarr
+    assert store.array("house_id")._reader is None  # strings: through zarr
+    assert store.array("depth").views([]).shape == (0, 5, 24, 32)
+    with pytest.raises(IndexError, match="out of range"):
+        store.array("depth").views([6])
+
+
 @pytest.mark.parametrize("codec, inner", [("zstd", "zstd"), ("blosc-zstd", "blosc")])
 def test_every_codec_stores_the_same_arrays_and_validates(codec, inner, store_path, tmp_path):
     """Plain zstd (readers without Blosc) and the old uniform Blosc store what the default
@@ -187,6 +222,7 @@ def test_every_codec_stores_the_same_arrays_and_validates(codec, inner, store_pa
     assert validate_store(str(out)) == []
     other, default = array_digests(str(out)), array_digests(str(store_path))
     assert other.keys() == default.keys() and other == default
+    _views_and_zarr(open_store(str(out)), [5, 0, 3])
 
 
 def test_the_default_codec_shuffles_each_array_as_the_layout_says_one_block_per_chunk(store_path):

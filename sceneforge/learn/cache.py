@@ -10,7 +10,10 @@ nets and the EFT again.
 
 Layout, under the run folder::
 
-    RUN/feature_cache/KEY/STORE-VIEW.npy     (C, R, R) float16 or float32, one per view
+    RUN/feature_cache/KEY/STORE-VIEW.npy     (R, R, C) float16 or float32, one per view
+                                             (channels last: the memory layout of the
+                                             overhead nets' input, so a batch of them
+                                             is one stack, no transpose)
 
 - ``KEY`` digests everything the features depend on besides the view: the frozen nets'
   weights and buffers (their content, as loaded from the frozen runs' checkpoints) and
@@ -50,7 +53,7 @@ from torch import Tensor, nn
 
 from .. import __version__
 from .config import TrainConfig
-from .dataset import StoreDataset
+from .dataset import Samples, StoreDataset, batch_tensor
 from .eft import EpipolarFeatureTransformer
 
 log = logging.getLogger(__name__)
@@ -58,7 +61,8 @@ log = logging.getLogger(__name__)
 #: the folder of a run that holds its feature caches
 CACHE_DIR = "feature_cache"
 #: the layout and meaning of the cached files; a change makes every older cache stale
-FORMAT = 1
+#: (2: channels last)
+FORMAT = 2
 DTYPES = {"float16": torch.float16, "float32": torch.float32}
 
 
@@ -96,7 +100,7 @@ def store_key(path: str) -> str:
 class CachedDataset(torch.utils.data.Dataset):
     """The samples of a :class:`StoreDataset` of the overhead stage with the overhead nets'
     input read from the cache: its target fields plus ``overhead_input`` (C, R, R) float16
-    or float32 (as stored), and ``index``."""
+    or float32 (as stored; channels-last in memory), and ``index``."""
 
     def __init__(self, targets: StoreDataset, files: list[str]):
         assert len(targets) == len(files)
@@ -106,7 +110,17 @@ class CachedDataset(torch.utils.data.Dataset):
         return len(self.files)
 
     def __getitem__(self, i: int) -> dict[str, Tensor]:
-        return {**self.targets[i], "overhead_input": torch.from_numpy(np.load(self.files[i]))}
+        return self.__getitems__([i])[0]
+
+    def __getitems__(self, indices) -> Samples:
+        """The samples ``indices``, their targets read as one batch (:meth:`StoreDataset.batch`)."""
+        batch = self.targets.batch(indices)
+        views = [np.load(self.files[int(i)], mmap_mode="r") for i in indices]
+        # a view stored in float32 (beyond float16's range) makes the batch float32, as stacking tensors does
+        stacked = batch_tensor((len(views), *views[0].shape), np.result_type(*views))  # (B, R, R, C)
+        np.stack(views, out=stacked.numpy())  # from the page cache straight into the batch: one copy
+        batch["overhead_input"] = stacked.permute(0, 3, 1, 2)
+        return Samples(batch)
 
 
 class FeatureCache:
@@ -177,7 +191,7 @@ class FeatureCache:
             stored = features.float()
         tmp = f"{path}.{os.getpid()}.tmp.npy"
         try:
-            np.save(tmp, stored.cpu().contiguous().numpy())
+            np.save(tmp, stored.cpu().permute(1, 2, 0).contiguous().numpy())
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):

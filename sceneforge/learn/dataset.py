@@ -1,8 +1,10 @@
 """Training samples from one or more stores (docs/spec.md §9 → §10.1).
 
-- **Lazy reads**: a :class:`StoreDataset` keeps only view indices; each sample reads its
-  own chunks of the arrays it needs. Stores are opened on first use in each process and
-  never pickled, so any number of DataLoader workers can read at once.
+- **Lazy reads**: a :class:`StoreDataset` keeps only view indices; a batch (a DataLoader
+  worker's whole batch, ``__getitems__``) reads the chunks of its views of each array it
+  needs at once, straight from the shard files, and makes its targets in one go. Stores
+  are opened on first use in each process and never pickled, so any number of DataLoader
+  workers can read at once.
 - **House-level split** (:mod:`.split`): every view of a house falls in the same split,
   fixed once per set of stores, so validation and test views show houses the networks
   never saw.
@@ -58,8 +60,8 @@ SAMPLE_FIELDS: dict[str, tuple[str, ...]] = {
 
 
 def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 → (3, H, W) float32 network input, ``(rgb − RGB_MEAN) / 255``."""
-    x = np.asarray(rgb, dtype=np.float32).transpose(2, 0, 1)
+    """(..., H, W, 3) uint8 → (..., 3, H, W) float32 network input, ``(rgb − RGB_MEAN) / 255``."""
+    x = np.moveaxis(np.asarray(rgb, dtype=np.float32), -1, -3)
     return (x - np.asarray(RGB_MEAN, dtype=np.float32)[:, None, None]) / 255.0
 
 
@@ -74,6 +76,24 @@ def segmentation_target(category: np.ndarray, empty: np.ndarray | None = None) -
     where ``empty`` (bool, same shape) is set."""
     classes = NYU40_TO_CLASS[np.asarray(category, dtype=np.int64)]
     return classes if empty is None else np.where(empty, EMPTY, classes)
+
+
+def batch_tensor(shape: tuple[int, ...], dtype) -> torch.Tensor:
+    """An empty tensor of a batch: in a DataLoader worker, in shared memory, which the
+    batch crosses to the training process in without another copy (as the default
+    collation stacks samples into)."""
+    out = torch.empty(shape, dtype=torch.from_numpy(np.empty(0, dtype=dtype)).dtype)
+    return out.share_memory_() if torch.utils.data.get_worker_info() is not None else out
+
+
+class Samples(list):
+    """The samples of a batch read at once (a dataset's ``__getitems__``), each a dict of
+    views of ``batch``, and the batch itself: the trainer's loaders take ``batch`` as it is
+    (:func:`sceneforge.learn.trainer.collate`), any other collation stacks the samples."""
+
+    def __init__(self, batch: dict[str, torch.Tensor]):
+        super().__init__({k: v[j] for k, v in batch.items()} for j in range(len(batch["index"])))
+        self.batch = batch
 
 
 @dataclass(frozen=True)
@@ -162,7 +182,9 @@ class StoreDataset(torch.utils.data.Dataset):
       frame, not turned to face the camera (NaN)
     - ``intersection_front_facing``: (L, H, W) bool, the ray meets the face's front (false)
 
-    Every sample also has ``index`` (its position in the dataset) int64.
+    Every sample also has ``index`` (its position in the dataset) int64. :meth:`batch`
+    gives a batch of samples stacked; ``__getitems__`` (what a DataLoader calls with a
+    batch's indices) the same as a list of samples.
     """
 
     def __init__(self, index: ViewIndex, fields: Sequence[str]):
@@ -188,42 +210,78 @@ class StoreDataset(torch.utils.data.Dataset):
         return self._open[1]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        store = self._stores()[int(self.index.store[i])]
-        v = int(self.index.view[i])
-        read = lambda name: np.asarray(store.array(name)[v])  # noqa: E731
+        return self.__getitems__([i])[0]
+
+    def __getitems__(self, indices: Sequence[int]) -> Samples:
+        """The samples ``indices``, each as ``dataset[i]`` gives it: the batch a DataLoader's
+        (batch) sampler asks for, read at once (:meth:`batch`)."""
+        return Samples(self.batch(indices))
+
+    def batch(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
+        """The samples ``indices`` stacked, (B, ...) per key: what the default collation of
+        ``[dataset[i] for i in indices]`` gives. Each array the fields need is read once
+        for the whole batch, one chunk per view straight from the shard files
+        (:meth:`~sceneforge.store.reader.CheckedArray.views`), and the targets are made for
+        the batch at once. The images (``rgb``) are channels-last in memory, as the nets
+        read them."""
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        stores = self.index.store[indices]
+        parts = []
+        for k in np.unique(stores):
+            at = np.flatnonzero(stores == k)
+            parts.append((at, self._read(self._stores()[int(k)], self.index.view[indices[at]])))
+        if len(parts) == 1:
+            out = parts[0][1]
+        else:  # views of several stores: each store's rows back in the batch's order
+            out = {}
+            for key, first in parts[0][1].items():
+                out[key] = np.empty((len(indices), *first.shape[1:]), dtype=first.dtype)
+                for at, part in parts:
+                    out[key][at] = part[key]
+        return {"index": torch.from_numpy(indices), **{k: torch.from_numpy(v) for k, v in out.items()}}
+
+    def _read(self, store, views: np.ndarray) -> dict[str, np.ndarray]:
+        """The fields of ``views`` of one store as numpy arrays (B, ...)."""
         missing = [name for field in self.fields for name in SAMPLE_FIELDS[field] if name not in store.names]
         if missing:  # only the optional intersection layers can be: the index checked the rest
             raise SceneforgeError(f"{store.where}: the store has no {', '.join(missing)}, which the sample fields "
                                   f"{', '.join(self.fields)} read; render it with --intersections K")
-        out: dict[str, torch.Tensor] = {"index": torch.tensor(i, dtype=torch.int64)}
+        arrays: dict[str, np.ndarray] = {}
+
+        def read(name: str) -> np.ndarray:  # each array once, whichever fields need it
+            if name not in arrays:
+                arrays[name] = store.array(name).views(views)
+            return arrays[name]
+
+        out: dict[str, np.ndarray] = {}
         if "rgb" in self.fields:
-            out["rgb"] = torch.from_numpy(normalize_rgb(read("rgb")))
+            out["rgb"] = normalize_rgb(read("rgb"))
         if "depth" in self.fields:
-            out["depth"] = torch.from_numpy(read("depth").astype(np.float32))
+            out["depth"] = read("depth").astype(np.float32, copy=False)
         if "seg" in self.fields:
-            out["seg"] = torch.from_numpy(seg_targets(read("category")[None], read("depth")[None], EMPTY)[0])
+            out["seg"] = seg_targets(read("category"), read("depth"), EMPTY)
         if "overhead_height" in self.fields:
-            height = read("overhead_height").astype(np.float32)
+            height = read("overhead_height").astype(np.float32, copy=False)
             foreground = np.isfinite(height)
             # the overhead D5 is the floor: where it alone is hit, the height is 0
-            floor = np.isfinite(read("overhead_depth")[4])
-            out["overhead_height"] = torch.from_numpy(np.where(~foreground & floor, np.float32(0), height))
-            out["overhead_foreground"] = torch.from_numpy(foreground)
+            floor = np.isfinite(read("overhead_depth")[:, 4])
+            out["overhead_height"] = np.where(~foreground & floor, np.float32(0), height)
+            out["overhead_foreground"] = foreground
         if "overhead_seg" in self.fields:
-            nothing = np.isnan(read("overhead_depth")).all(axis=0)
-            out["overhead_seg"] = torch.from_numpy(segmentation_target(read("overhead_category"), nothing))
+            nothing = np.isnan(read("overhead_depth")).all(axis=1)
+            out["overhead_seg"] = segmentation_target(read("overhead_category"), nothing)
         if "camera" in self.fields:
             for name in SAMPLE_FIELDS["camera"]:
-                out[name] = torch.from_numpy(read(name).astype(np.float64))
+                out[name] = read(name).astype(np.float64, copy=False)
         if "intersections" in self.fields:
-            depth = read("intersections/depth").astype(np.float32)
-            out["intersection_depth"] = torch.from_numpy(depth)
-            out["intersection_valid"] = torch.from_numpy(np.isfinite(depth))
+            depth = read("intersections/depth").astype(np.float32, copy=False)
+            out["intersection_depth"] = depth
+            out["intersection_valid"] = np.isfinite(depth)
         if "intersection_labels" in self.fields:
-            out["intersection_instance"] = torch.from_numpy(read("intersections/instance").astype(np.int64))
-            out["intersection_category"] = torch.from_numpy(read("intersections/category").astype(np.int64))
+            out["intersection_instance"] = read("intersections/instance").astype(np.int64)
+            out["intersection_category"] = read("intersections/category").astype(np.int64)
         if "intersection_normal" in self.fields:
-            out["intersection_normal"] = torch.from_numpy(read("intersections/normal").astype(np.float32))
+            out["intersection_normal"] = read("intersections/normal").astype(np.float32, copy=False)
         if "intersection_front_facing" in self.fields:
-            out["intersection_front_facing"] = torch.from_numpy(read("intersections/front_facing").astype(bool))
+            out["intersection_front_facing"] = read("intersections/front_facing").astype(bool, copy=False)
         return out

@@ -80,9 +80,9 @@ class Stage(ABC):
 
     @abstractmethod
     def objective(self, config: TrainConfig, outputs: dict[str, Tensor], batch: dict[str, Tensor]
-                  ) -> tuple[Tensor, dict[str, float]]:
+                  ) -> tuple[Tensor, dict[str, Tensor]]:
         """The loss of :meth:`forward`'s outputs (a scalar with its graph) and its logged parts
-        (:attr:`loss_parts`)."""
+        (:attr:`loss_parts`, 0-d and detached: read only when logged, reading waits for the device)."""
 
     def measure(self, config: TrainConfig, outputs: dict[str, Tensor], batch: dict[str, Tensor],
                 metrics: Metrics) -> None:
@@ -90,7 +90,7 @@ class Stage(ABC):
         return None
 
     def loss(self, config: TrainConfig, nets: Nets, frontal: Nets, eft: EpipolarFeatureTransformer | None,
-             batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+             batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         """The loss on a batch (a scalar with its graph) and its logged parts (:attr:`loss_parts`)."""
         return self.objective(config, self.forward(config, nets, frontal, eft, batch), batch)
 
@@ -173,7 +173,7 @@ class OverheadStage(Stage):
     def objective(self, config, outputs, batch):
         h = overhead_height_loss(config, outputs["height"], batch)
         s = segmentation_loss(outputs["overhead_seg"], batch["overhead_seg"], config.loss)
-        return h + config.loss.overhead_seg_weight * s, {"height_l1": h.item(), "seg_ce": s.item()}
+        return h + config.loss.overhead_seg_weight * s, {"height_l1": h.detach(), "seg_ce": s.detach()}
 
     def measure(self, config, outputs, batch, metrics):
         height_error(outputs["height"], batch["overhead_height"], metrics)

@@ -5,8 +5,8 @@
   DistributedDataParallel copy of the nets with several processes, :mod:`.distributed`),
   the mean loss over a dataset (validation)
 - :func:`make_loader`  — the DataLoader of a dataset: worker processes that open the
-  stores themselves (forked where zarr survives a fork, else from a fork server), kept
-  for the whole run
+  stores themselves (forked where zarr survives a fork, else from a fork server), read
+  whole batches and prefetch, kept for the whole run
 - :class:`Checkpoint`  — ``checkpoint.pt``: weights, optimiser and :class:`Position`,
   replaced atomically, restored on resume; ``best.pt`` the same at the lowest validation loss
 - :class:`MetricsLog`  — ``metrics.csv``, TensorBoard scalars and (optional) Weights & Biases
@@ -17,7 +17,9 @@
   (the loss and the stage's metrics, :mod:`.metrics`) after every whole epoch, and a
   checkpoint of the last whole step when Ctrl-C or SIGTERM stops it (:func:`held_interrupts`);
   with several processes, each steps on its share of every batch (:class:`EpochSampler`)
-  and rank 0 alone writes and validates
+  and rank 0 alone writes and validates. A step waits for nothing on the device: its
+  losses are read once a train row (and before a checkpoint), and a non-finite one stops
+  the run there, naming its step, before any checkpoint holds its weights
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from torch import Tensor
 
 from ..errors import SceneforgeError
 from .config import TrainConfig
-from .dataset import StoreDataset
+from .dataset import Samples, StoreDataset
 from .distributed import Distributed, sync_batchnorm
 from .eft import EpipolarFeatureTransformer
 from .metrics import Metrics
@@ -52,7 +54,9 @@ BEST = "best.pt"
 
 
 class TrainProgress(Protocol):
-    """Receives a run's progress: ``start`` once, then ``step`` after every optimiser step."""
+    """Receives a run's progress: ``start`` once, then ``step`` after every optimiser step
+    with the mean loss of the last train row (NaN before the first): a step's own loss
+    would wait for the device at every step."""
 
     def start(self, total: int, done: int) -> None: ...
 
@@ -93,6 +97,8 @@ def held_interrupts():
 
 #: the most DataLoader worker processes a run starts by default (per training process)
 MAX_DEFAULT_WORKERS = 4
+#: batches each DataLoader worker prepares ahead of the one being trained on
+PREFETCH = 4
 #: modules the fork server imports once, so that each worker it forks starts at once
 _WORKER_PRELOAD = ["torch", "sceneforge.learn.dataset"]
 
@@ -147,19 +153,36 @@ def end_workers(loader: torch.utils.data.DataLoader | None) -> None:
         iterator._shutdown_workers()
 
 
+def collate(samples: list):
+    """The ``collate_fn`` of :func:`make_loader`: the batch that :class:`~.dataset.Samples`
+    carry as it was read (else the default collation); of a batch of named tensors, every
+    4-D floating one channels-last as :func:`_to` moves it. Made so in the worker that read
+    the batch, it leaves the training process nothing to copy on the CPU, and a GPU copy
+    lands in the nets' layout."""
+    batch = samples.batch if isinstance(samples, Samples) else torch.utils.data.default_collate(samples)
+    if not isinstance(batch, dict):
+        return batch
+    return {k: v.contiguous(memory_format=torch.channels_last) if torch.is_tensor(v) and v.dim() == 4
+            and v.is_floating_point() else v for k, v in batch.items()}
+
+
 def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int = 1, batch_sampler=None,
                 timeout: float = 0, start: str | None = None) -> torch.utils.data.DataLoader:
     """A DataLoader of ``dataset`` in batches of ``batch_size`` in order, or those of
-    ``batch_sampler``. With ``workers`` > 0 they are :func:`worker_context` processes
-    (``start``: its method) kept alive between epochs (persistent) that leave Ctrl-C and
-    SIGTERM to this process; on CUDA the batches come in pinned memory.
+    ``batch_sampler``. A dataset with ``__getitems__`` (:class:`~.dataset.StoreDataset`)
+    reads each batch at once, in the worker that makes it, and the batch comes as it was
+    read (:func:`collate`). With ``workers`` > 0 they are
+    :func:`worker_context` processes (``start``: its method) kept alive between epochs
+    (persistent), each :data:`PREFETCH` batches ahead, that leave Ctrl-C and SIGTERM to this
+    process; on CUDA the batches come in pinned memory (copied to the GPU without blocking,
+    :func:`_to`). Batches come in the sampler's order whatever the number of workers.
 
     timeout : seconds to wait for a worker's batch before raising (0: for ever)
     """
-    kw = {"num_workers": workers, "pin_memory": device.type == "cuda"}
+    kw = {"num_workers": workers, "pin_memory": device.type == "cuda", "collate_fn": collate}
     if workers > 0:
         kw.update(multiprocessing_context=worker_context(start), persistent_workers=True, timeout=timeout,
-                  worker_init_fn=_leave_interrupts_to_the_parent)
+                  prefetch_factor=PREFETCH, worker_init_fn=_leave_interrupts_to_the_parent)
     if batch_sampler is not None:
         return torch.utils.data.DataLoader(dataset, batch_sampler=batch_sampler, **kw)
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, shuffle=False, **kw)
@@ -248,8 +271,8 @@ class Trainer:
             outputs = self.stage.forward(self.config, nets, self.frontal, self.eft, batch)
         return _float(outputs)
 
-    def loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
-        """The stage's loss on a batch (on the device) and its logged parts."""
+    def loss(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
+        """The stage's loss on a batch (on the device) and its logged parts (0-d, detached)."""
         return self.stage.objective(self.config, self._outputs(self.train_nets, batch), batch)
 
     def set_lr(self, lr: float) -> None:
@@ -257,22 +280,23 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
 
-    def step(self, batch: dict[str, Tensor], number: int) -> dict[str, float]:
-        """One optimiser step on a batch; its losses as logged (``loss`` and the parts).
+    def step(self, batch: dict[str, Tensor], number: int) -> dict[str, Tensor]:
+        """One optimiser step on a batch; its losses as logged (``loss`` and the parts),
+        0-d tensors on the device, detached. Nothing here waits for the device (no host
+        synchronisation; fp16's loss scaler excepted): reading a loss does, so the loop
+        reads them once a train row (:class:`EpochLoop`), and :func:`check_finite` tells
+        a diverged one.
 
-        number : the step's number, for the error a diverged loss raises, and which views
-                 ``config.flip`` mirrors (:func:`mirrored`)
+        number : which views ``config.flip`` mirrors (:func:`mirrored`)
         """
         if self.config.flip and self.stage.flip_fields:
             batch = mirrored(batch, self.stage.flip_fields, self.config.seed, number)
         loss, parts = self.loss(batch)
-        if not torch.isfinite(loss):
-            raise SceneforgeError(f"step {number}: the loss is {loss.item()} (diverged); lower --lr")
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         self.scaler.step(self.optimizer)
         self.scaler.update()
-        return {"loss": loss.item(), **parts}
+        return {"loss": loss.detach(), **parts}
 
     def validate(self, dataset: StoreDataset, workers: int = 0, loader=None) -> dict[str, float]:
         """Mean loss (``loss``) and the stage's :attr:`~.stages.Stage.val_metrics` over a
@@ -280,7 +304,7 @@ class Trainer:
         mode after)."""
         for net in self.nets.values():
             net.eval()
-        total, n, metrics = 0.0, 0, Metrics()
+        total, n, metrics = torch.zeros((), dtype=torch.float64, device=self.device), 0, Metrics()
         own = loader is None
         if own:
             loader = make_loader(dataset, self.device, workers, batch_size=self.config.batch_size)
@@ -291,14 +315,14 @@ class Trainer:
                     outputs = self._outputs(self.nets, batch)
                     loss, _ = self.stage.objective(self.config, outputs, batch)
                     self.stage.measure(self.config, outputs, batch, metrics)
-                    total += loss.item() * len(batch["index"])
+                    total += loss.detach() * len(batch["index"])
                     n += len(batch["index"])
         finally:
             if own:
                 end_workers(loader)
         for net in self.nets.values():
             net.train()
-        return {"loss": total / max(n, 1), **metrics.result()}
+        return {"loss": float(total) / max(n, 1), **metrics.result()}
 
 
 def learning_rate(config: TrainConfig, step: int, total: int) -> float:
@@ -318,9 +342,7 @@ def mirrored(batch: dict[str, Tensor], fields: tuple[str, ...], seed: int, step:
     index = batch["index"].to(torch.int64)
     h = (index * 0x9E3779B1 + step * 0x85EBCA77 + seed * 0xC2B2AE3D) & 0xFFFFFFFF
     h = ((h ^ (h >> 15)) * 0x2C1B3C6D) & 0xFFFFFFFF
-    flip = ((h >> 16) & 1).bool()
-    if not flip.any():
-        return batch
+    flip = ((h >> 16) & 1).bool()  # no test of whether any is set: that waits for the device
     out = dict(batch)
     for name in fields:
         v = batch[name]
@@ -464,26 +486,50 @@ class EpochSampler(torch.utils.data.Sampler):
         return math.ceil(len(self.order) / self.batch_size)
 
 
+def check_finite(losses: list[tuple[int, Tensor | float]]) -> None:
+    """Raise :class:`SceneforgeError` naming the first of ``(step number, loss)`` whose loss
+    is not finite (the run diverged); one wait for the device for them all."""
+    if not losses:
+        return
+    values = torch.stack([torch.as_tensor(loss, dtype=torch.float64) for _, loss in losses]).cpu()
+    bad = torch.nonzero(~torch.isfinite(values))
+    if len(bad):
+        k = int(bad[0, 0])
+        raise SceneforgeError(f"step {losses[k][0]}: the loss is {values[k].item()} (diverged); lower --lr")
+
+
 class _TrainWindow:
-    """The training losses and images since the last train row of the metrics."""
+    """The training losses and images since the last train row of the metrics. Each step's
+    losses stay where the step left them (on the device) until the row (:meth:`pooled`) or a
+    checkpoint (:meth:`check`) reads them: one wait for the device per row, none per step."""
 
     def __init__(self):
         self.started, self.images, self.sums, self.count = time.perf_counter(), 0, {}, 0
         self.paused = 0.0  # seconds spent on anything but training steps (validation)
+        self.losses: list[tuple[int, dict[str, Tensor]]] = []  # (step number, its losses)
+        self.checked = 0  # losses[:checked] are known to be finite
 
-    def add(self, images: int, losses: dict[str, float]) -> None:
+    def add(self, number: int, images: int, losses: dict[str, Tensor | float]) -> None:
         self.images += images
-        for key, value in losses.items():
-            self.sums[key] = self.sums.get(key, 0.0) + value
-        self.count += 1
+        self.losses.append((number, losses))
+
+    def check(self) -> None:
+        """Raise :class:`SceneforgeError` when a loss since the last check is not finite."""
+        check_finite([(n, losses["loss"]) for n, losses in self.losses[self.checked:]])
+        self.checked = len(self.losses)
 
     def pooled(self, dist: Distributed) -> None:
-        """Pool the images and loss sums of every process (each must call it at once)."""
-        keys = sorted(self.sums)
-        values = dist.sum(torch.tensor([self.images, self.count, *(self.sums[k] for k in keys)],
-                                       dtype=torch.float64))
+        """Check the losses, then pool the images and loss sums of every process (each must
+        call it at once)."""
+        self.check()
+        keys = sorted(self.losses[0][1])
+        first = torch.as_tensor(self.losses[0][1]["loss"])
+        as64 = dict(dtype=torch.float64, device=first.device)
+        sums = [torch.stack([torch.as_tensor(losses[k], **as64) for _, losses in self.losses]).sum() for k in keys]
+        values = dist.sum(torch.stack([torch.tensor(float(self.images), **as64),
+                                       torch.tensor(float(len(self.losses)), **as64), *sums])).tolist()
         self.images, self.count = int(values[0]), int(values[1])
-        self.sums = dict(zip(keys, values[2:].tolist()))
+        self.sums = dict(zip(keys, values[2:]))
 
     def images_per_s(self) -> float:
         return self.images / max(time.perf_counter() - self.started - self.paused, 1e-9)
@@ -562,6 +608,7 @@ class EpochLoop:
 
     def _save(self, checkpoint: Checkpoint, at: Position) -> None:
         if self.dist.is_main:
+            self._window.check()  # a diverged run's weights are never saved
             started = time.perf_counter()
             checkpoint.save(self.trainer, at)
             self._window.paused += time.perf_counter() - started
@@ -575,14 +622,14 @@ class EpochLoop:
                 batch = _to(batch, dev)
                 self.trainer.set_lr(learning_rate(config, at.step, self.total))
                 losses = self.trainer.step(batch, at.step)
+                self._window.add(at.step, len(batch["index"]), losses)
                 self.at = at = replace(at, step=at.step + 1, batch=at.batch + 1)
-                self._window.add(len(batch["index"]), losses)
                 if at.step % config.log_every == 0 or at.step == self.total:
                     self._log_train(at)
                 if at.step % config.checkpoint_every == 0:
                     self._save(self.checkpoint, at)
                 if self.progress:
-                    self.progress.step(at.step, losses["loss"])
+                    self.progress.step(at.step, self.train_loss)
             if at.step >= self.total:
                 break
         return at

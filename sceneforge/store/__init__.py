@@ -28,6 +28,9 @@ This package is the only one that touches zarr, one module per concern:
 - :mod:`.lock`: :class:`StoreLock`, which the writer holds for the run;
 - :mod:`.reader`: :func:`open_store` reads one with numpy only (no PyTorch);
   :func:`array_digests` fingerprints its contents;
+- :mod:`.shards`: whole views of a per-view array read straight from its shard files, as
+  zarr's sharding codec lays them out (what training reads, batch by batch, through
+  ``store.array(name).views(rows)``);
 - :mod:`.validate`: :func:`check_store` (and :func:`validate_store`) checks one against
   the schema, its manifest and for internal consistency;
 - :mod:`.export`: :func:`export_exr`, a view as an OpenEXR file.
