@@ -49,8 +49,7 @@ from sceneforge.camera_sampler import CameraSamplerConfig, sample_cameras
 from sceneforge.cameras import look_at_camera
 from sceneforge.houses import BUNDLED_TOY, House, Material, Room, discover, load, make_instance
 from sceneforge.raytrace import HouseTracer
-from sceneforge.render import RenderConfig, Renderer, open_renderer
-from sceneforge.render import raster
+from sceneforge.render import RenderConfig, Renderer, open_renderer, raster
 
 BREAKFAST = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "breakfast_room" / "BreakfastRoom.gltf"
 WIDTH, HEIGHT = 320, 240

@@ -4,6 +4,7 @@ OBJ, glTF and PLY writers and readers; old one-material files unchanged."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest

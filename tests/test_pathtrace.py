@@ -294,8 +294,6 @@ def test_grain_keeps_a_fraction_of_the_samples_noise(mi):
 
     house = box_room("room", size=4.0, height=3.0)
     camera = Camera(default_intrinsics(80, 60), pose_from_view([0.0, 1.5, -1.0], [0.0, 0.0, 1.0]), 80, 60)
-    wall = np.abs(frontal_layers(house, camera).depth[4] - 3.0) < 1e-6
-    region = ndimage.binary_erosion(wall, iterations=3)
     with open_renderer("pathtraced", 80, 60, samples=8, denoise=False) as r:
         raw, _ = r.render_linear(house, camera)
     frames = {}

@@ -8,8 +8,7 @@ import pytest
 from PIL import Image
 
 from sceneforge.houses import Material
-from sceneforge.render import RenderConfig
-from sceneforge.render import sky
+from sceneforge.render import RenderConfig, sky
 from sceneforge.render.lights import MAX_ALBEDO, house_lights, mean_texel, room_albedo, room_ambient
 
 from .conftest import box_instance, box_room

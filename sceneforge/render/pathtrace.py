@@ -61,8 +61,8 @@ from ..colour import srgb_to_linear
 from ..conventions import tol
 from ..errors import MissingDependencyError, SceneforgeError
 from .lights import glazed_windows, house_lights
-from .sky import dome as sky_dome
 from .raster import RenderConfig, _texels, _texture_key, check_camera_size, house_batches
+from .sky import dome as sky_dome
 from .tonemap import ToneMapped
 
 if TYPE_CHECKING:

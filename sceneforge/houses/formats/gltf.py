@@ -371,8 +371,8 @@ def read_gltf(path: Path, warn: Warn = ignore) -> Iterator[Mesh]:
             if any(g[3] is not None for _, g in parts):
                 colors = np.concatenate([g[3] if g[3] is not None else np.ones((len(g[0]), 4)) for _, g in parts])
 
-            def key_of(p, g):
-                return p.get("material"), uv is not None and g[2] is None
+            def key_of(p, g, textured=uv is not None):
+                return p.get("material"), textured and g[2] is None
 
             keys = list(dict.fromkeys(key_of(p, g) for p, g in parts))
             materials = tuple(_untextured(gltf.material(key)) if bare else gltf.material(key) for key, bare in keys)
