@@ -14,7 +14,13 @@
 # benchmarks/learning/. A killed run starts again where it stopped: the store resumes and
 # each stage continues from its checkpoint.
 #
+# The operating point (the least object probabilities predict keeps pixels at) is chosen on
+# the run's own validation houses, where precision meets recall (predict.json).
+#
 # SCENEFORGE: the command to run (default: sceneforge on the PATH, else .venv/bin/sceneforge).
+# RECIPE: the folder of config files (default benchmarks/learning/, the 2-core CPU recipe;
+#         benchmarks/learning/gpu/ is the one-GPU recipe, see its README.md).
+# RENDER_WORKERS: render's worker processes (default 2).
 set -euo pipefail
 
 if [ $# -ne 2 ]; then
@@ -23,10 +29,11 @@ if [ $# -ne 2 ]; then
 fi
 houses=$1
 work=$2
-recipe=$(cd "$(dirname "$0")" && pwd)/learning
+recipe=${RECIPE:-$(cd "$(dirname "$0")" && pwd)/learning}
 here=$(cd "$(dirname "$0")/.." && pwd)
 sf=${SCENEFORGE:-$(command -v sceneforge || echo "$here/.venv/bin/sceneforge")}
 [ -d "$houses" ] || { echo "error: $houses is not a folder of houses" >&2; exit 2; }
+[ -f "$recipe/render.json" ] || { echo "error: RECIPE=$recipe holds no render.json" >&2; exit 2; }
 mkdir -p "$work"
 
 timings=()
@@ -40,7 +47,7 @@ step() {  # step NAME COMMAND...: run it and keep its wall time
 }
 
 started=$(date +%s)
-step render "$sf" render "$houses" "$work/gt.zarr" --config "$recipe/render.json" --workers 2
+step render "$sf" render "$houses" "$work/gt.zarr" --config "$recipe/render.json" --workers "${RENDER_WORKERS:-2}"
 for stage in depth seg overhead; do
     run="$work/runs/$stage"
     more=()

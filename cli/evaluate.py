@@ -167,12 +167,17 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
     split (per-pixel mean depth, most frequent class, mean height), printed as a table and
     written under "learning" in --json.
 
+    It names the operating point PRED was predicted at (the least object probabilities of
+    kept pixels, and whether they were given or chosen on the validation houses: `sceneforge
+    predict --operating-point validation`), under "operating_point" in --json.
+
     Last, the layered point scores of `sceneforge evaluate points` on the same views,
     written under "layered_points" in --json."""
     from sceneforge.errors import SceneforgeError
     from sceneforge.evaluate import PREDICTION_VARIANTS, evaluate_views, prediction_views
     from sceneforge.evaluate.learning import learning_scores, training_baselines
     from sceneforge.evaluate.stores import check_matching, empty_views, score_store_points, views_to_score
+    from sceneforge.learn.operating_point import OperatingPoint
     from sceneforge.store import open_store
 
     plot = plot or _beside(pred, "predictions")
@@ -201,10 +206,11 @@ def predictions(pred, gt, config, limit, json_path, plot, split, split_file):
                     f"scored precision 1 and recall 0 by convention (views {', '.join(map(str, empty[:8]))}"
                     f"{', ...' if len(empty) > 8 else ''})", fg="yellow")
     extra = {}
+    prediction = pred_store.attrs.get("prediction", {})
+    extra["operating_point"] = OperatingPoint.from_dict(prediction.get("operating_point") or prediction)
     if houses is None:
         click.secho(f"learning scores left out: the baselines need the training houses ({no_split})", fg="yellow")
     else:
-        prediction = pred_store.attrs.get("prediction", {})
         extra["learning"] = learning_scores(pred_store, gt_store, indices, training_baselines(gt_store, train),
                                             prediction.get("stages", ("depth", "seg", "overhead")),
                                             same_overhead_cameras=prediction.get("camera_run") is None)

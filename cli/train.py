@@ -52,6 +52,8 @@ PREDICT_OPTIONS = (
     ConfigOption("--min-object-probability", "min_object_probability", type=click.FloatRange(0, 1)),
     ConfigOption("--min-overhead-object-probability", "min_overhead_object_probability",
                  type=click.FloatRange(0, 1)),
+    ConfigOption("--operating-point", "operating_point"),
+    ConfigOption("--operating-point-views", "operating_point_views", type=click.IntRange(min=1)),
     ConfigOption("--split-file", "split_file", type=click.Path(exists=True, dir_okay=False), convert=absolute_path),
 )
 
@@ -172,8 +174,11 @@ def predict(run, store, out, config, device, workers, overwrite):
                                  split=config.split, split_file=config.split_file, floor=config.floor_removal,
                                  min_object_probability=config.min_object_probability,
                                  min_overhead_object_probability=config.min_overhead_object_probability,
+                                 operating_point=config.operating_point,
+                                 operating_point_views=config.operating_point_views,
                                  device=device, workers=workers,
                                  overwrite=overwrite, progress=RichProgress(bar))
+    console.print(summary.operating_point.describe())
     console.print(f"split: {summary.split} ({plural(summary.predicted, 'view')} of {plural(summary.houses, 'house')})")
     console.print(f"{summary.path}: {summary.predicted} of {summary.views} views predicted "
                   f"({', '.join(summary.stages)}) in {summary.seconds:.1f} s")

@@ -651,6 +651,70 @@ def test_predict_writes_the_store_layout(store, frontal_runs, tmp_path):
         predict(frontal_runs["depth"], store, str(tmp_path / "x.zarr"), camera_run=camera, device="cpu")
 
 
+def test_the_operating_point_is_chosen_on_the_validation_houses_and_reported(store, tmp_path):
+    import click
+    from click.testing import CliRunner
+    from sceneforge.cli.main import LazyGroup
+
+    from sceneforge.learn.operating_point import GRID
+    from sceneforge.learn.split import read_split
+    from sceneforge.store import array_digests, open_store
+
+    split = SplitConfig(0.34, 0.34, seed=3, file=str(tmp_path / "split.json"))
+    for stage in ("depth", "seg"):  # one house each to train, validate and test on
+        train(small_config(stage, store, split=split), tmp_path / stage, device="cpu", tensorboard=False)
+    run = tmp_path / "overhead"
+    train(small_config("overhead", store, depth_run=str(tmp_path / "depth"), seg_run=str(tmp_path / "seg"),
+                       max_steps=1, split=split), run, device="cpu", tensorboard=False)
+    (val,) = read_split(tmp_path / "split.json").of("val")
+    out = tmp_path / "pred.zarr"
+    summary = predict(run, store, str(out), device="cpu", workers=0, operating_point="validation")
+    point = summary.operating_point
+    assert point.rule == "validation" and (point.views, point.houses) == (2, 1)  # the validation house's 2 views
+    assert point.min_object_probability in GRID and point.min_overhead_object_probability in GRID
+    assert point.precision.shape == point.recall.shape == (len(GRID), len(GRID))
+    recorded = open_store(str(out)).attrs["prediction"]["operating_point"]
+    assert recorded == {**point.to_dict(), "seconds": recorded["seconds"]}
+    assert val not in {str(open_store(str(out)).array("house_id")[i]) for i in summary_views(out)}
+    # the chosen thresholds are the ones the test views were predicted with
+    given = tmp_path / "given.zarr"
+    predict(run, store, str(given), device="cpu", workers=0, min_object_probability=point.min_object_probability,
+            min_overhead_object_probability=point.min_overhead_object_probability)
+    assert array_digests(str(out)) == array_digests(str(given))
+    with pytest.raises(SceneforgeError, match="give no --min-object-probability"):
+        predict(run, store, str(tmp_path / "x.zarr"), device="cpu", operating_point="validation",
+                min_object_probability=0.5)
+    with pytest.raises(ValueError, match="leave them unset"):
+        PredictConfig(operating_point="validation", min_overhead_object_probability=0.5)
+
+    @click.group(cls=LazyGroup, lazy={"predict": "train:predict", "evaluate": "evaluate:evaluate"})
+    def cli():
+        pass
+
+    cli_out = str(tmp_path / "cli.zarr")
+    result = CliRunner().invoke(cli, ["predict", str(run), store, cli_out, "--device", "cpu", "--workers", "0",
+                                      "--operating-point", "validation", "--operating-point-views", "1"])
+    assert result.exit_code == 0, result.output
+    assert "chosen on 1 views of 1 validation houses where precision meets recall" in result.output
+    report = tmp_path / "evaluation.json"
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", cli_out, store, "--density", "200",
+                                      "--plot", str(tmp_path / "p.png"), "--json", str(report)])
+    assert result.exit_code == 0, result.output
+    chosen = json.loads(report.read_text())["operating_point"]
+    assert chosen["rule"] == "validation" and chosen["views"] == 1 and "operating point:" in result.output
+    assert chosen == open_store(cli_out).attrs["prediction"]["operating_point"]
+    result = CliRunner().invoke(cli, ["evaluate", "predictions", str(given), store, "--density", "200",
+                                      "--plot", str(tmp_path / "g.png")])
+    assert result.exit_code == 0, result.output
+    assert "as given" in result.output
+
+
+def summary_views(path) -> list[int]:
+    from sceneforge.store import open_store
+
+    return open_store(str(path)).attrs["prediction"]["views"]
+
+
 def test_true_camera_parameters_place_the_true_overhead_camera(store):
     from sceneforge.store import open_store
 

@@ -28,6 +28,8 @@ GATINGS: tuple[str, ...] = typing.get_args(Gating)
 SegEmpty = Literal["ignore", "background"]
 #: how the floor is removed from predicted overhead heights
 FloorRemoval = Literal["segmentation", "height"]
+#: how predict's object-probability thresholds are set (sceneforge.learn.operating_point)
+OperatingPointRule = Literal["given", "validation"]
 #: how the learning rate changes over a run: "constant", or "cosine" (from ``lr`` down to 0
 #: at the run's last step, half a cosine)
 LRSchedule = Literal["constant", "cosine"]
@@ -268,6 +270,13 @@ class PredictConfig:
     min_object_probability: float | None = None
     #: the same for the overhead heights, with the overhead segmentation net
     min_overhead_object_probability: float | None = None
+    #: how those two are set: "given" (as above) or "validation": chosen per run on the
+    #: validation houses of the split, where precision meets recall (the largest
+    #: min(precision, recall) at 5 cm of D1-4 & overhead against objects; the two above must
+    #: then be unset)
+    operating_point: OperatingPointRule = "given"
+    #: the most validation views the operating point is chosen on (evenly spread)
+    operating_point_views: int = 48
 
     def __post_init__(self):
         for name in ("min_object_probability", "min_overhead_object_probability"):
@@ -281,6 +290,15 @@ class PredictConfig:
             raise ValueError(f"split must be one of {typing.get_args(SplitName)}, got {self.split!r}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be at least 1, got {self.batch_size}")
+        if self.operating_point not in typing.get_args(OperatingPointRule):
+            raise ValueError(f"operating_point must be one of {typing.get_args(OperatingPointRule)}, "
+                             f"got {self.operating_point!r}")
+        if self.operating_point == "validation" and (self.min_object_probability is not None
+                                                     or self.min_overhead_object_probability is not None):
+            raise ValueError("operating_point 'validation' chooses min_object_probability and "
+                             "min_overhead_object_probability: leave them unset")
+        if self.operating_point_views < 1:
+            raise ValueError(f"operating_point_views must be at least 1, got {self.operating_point_views}")
 
     def to_dict(self) -> dict:
         from sceneforge.config import dataclass_to_dict

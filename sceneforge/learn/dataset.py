@@ -120,6 +120,11 @@ class ViewIndex:
         keep = np.isin(self.house, np.asarray(list(houses), dtype=self.house.dtype))
         return ViewIndex(self.stores, self.store[keep], self.view[keep], self.house[keep], self.shapes)
 
+    def take(self, rows: Sequence[int]) -> "ViewIndex":
+        """The views at positions ``rows`` of this index."""
+        rows = np.asarray(rows, dtype=np.int64)
+        return ViewIndex(self.stores, self.store[rows], self.view[rows], self.house[rows], self.shapes)
+
     def __len__(self) -> int:
         return len(self.view)
 

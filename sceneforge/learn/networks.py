@@ -267,3 +267,13 @@ def object_pixels(logits: Tensor, min_probability: float | None = None, dim: int
         background = logits.softmax(dim=dim).select(dim, BACKGROUND)
         objects &= (1.0 - background) >= min_probability
     return objects
+
+
+def object_scores(logits: Tensor, dim: int = 1) -> Tensor:
+    """The least ``min_probability`` at which :func:`object_pixels` keeps each pixel: its
+    object probability, 1 − P(background), where the arg-max is an object, −1 where it is
+    not (no threshold keeps it). ``object_pixels(logits, t) == (object_scores(logits) >= t)``
+    for every t in [0, 1]."""
+    objects = logits.argmax(dim=dim) != BACKGROUND
+    background = logits.softmax(dim=dim).select(dim, BACKGROUND)
+    return torch.where(objects, 1.0 - background, torch.full_like(background, -1.0))

@@ -42,7 +42,8 @@ from ..errors import SceneforgeError
 from ..store.guard import check_apart, check_store_output
 from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
-from .networks import SEG_LAYERS, masked_layers, object_pixels
+from .networks import SEG_LAYERS, masked_layers, object_pixels, object_scores
+from .operating_point import OperatingPoint
 from .split import default_split_file, read_split
 from .stages import REGISTRY, get_stage
 from .train import load_run, overhead_input, resolve_device
@@ -52,6 +53,10 @@ if TYPE_CHECKING:
     from sceneforge.config import DatasetConfig
     from sceneforge.store import SceneStore, StoreWriter
 
+    from .dataset import ViewIndex
+
+#: how the object-probability thresholds are set (:mod:`.operating_point`)
+OPERATING_POINTS = ("given", "validation")
 #: predicted heights at or below this (metres above the floor) are floor: NaN
 MIN_HEIGHT = 0.05
 #: arrays copied from the source store (the overhead camera ones unless a camera run places them)
@@ -71,6 +76,8 @@ class PredictSummary:
     #: the split predicted, and the houses of it that the store holds
     split: str = "all"
     houses: int = 0
+    #: the thresholds used, and how they were set
+    operating_point: OperatingPoint | None = None
 
 
 def proposed_overhead_cameras(K: np.ndarray, cam_to_world: np.ndarray, size: tuple[int, int],
@@ -113,10 +120,13 @@ def overhead_heights(height: torch.Tensor, seg_logits: torch.Tensor, floor: str 
 
 
 def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: dict, camera: bool,
-                   floor: str = "segmentation", thresholds: tuple[float | None, float | None] = (None, None)) -> dict:
+                   floor: str = "segmentation", thresholds: tuple[float | None, float | None] = (None, None),
+                   scores: bool = False) -> dict:
     """Every output of a batch as numpy arrays, keyed by store array name; ``thresholds``:
     the least object probabilities of the frontal and the overhead segmentation (None: the
-    arg-max alone)."""
+    arg-max alone). With ``scores``, also each kept pixel's least threshold that keeps it
+    (:func:`~.networks.object_scores`): ``front_score`` (B, 2, H, W) of D1/D2 and of D3/D4,
+    ``top_score`` (B, R, R) of the overhead heights (1 where no segmentation removes them)."""
     front, top_threshold = thresholds
     rgb = batch["rgb"]
     out: dict[str, np.ndarray] = {}
@@ -136,6 +146,9 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
             layers = masked_layers(layers, logits, front)
         top = nets["overhead_seg"](x)
         out["overhead_height"] = overhead_heights(nets["height"](x)[:, 0], top, floor, top_threshold).cpu().numpy()
+        if scores:
+            top_score = object_scores(top) if floor == "segmentation" else torch.ones_like(top[:, 0])
+            out["top_score"] = top_score.float().cpu().numpy()
         out["overhead_category"] = CLASS_TO_NYU40[top.argmax(dim=1).cpu().numpy()].astype(np.uint8)
     else:
         logits = nets["seg"](rgb).prediction if "seg" in nets else None
@@ -145,6 +158,10 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
             layers = depth if logits is None else masked_layers(depth, logits, front)
     if layers is not None:
         out["depth"] = layers.float().cpu().numpy()
+    if logits is not None and scores:
+        B, _, H, W = logits.shape
+        first, third = object_scores(logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W), dim=2).unbind(1)
+        out["front_score"] = torch.stack([first, torch.minimum(first, third)], dim=1).float().cpu().numpy()
     if logits is not None:
         B, _, H, W = logits.shape
         classes = logits.reshape(B, SEG_LAYERS, SEG_CLASSES, H, W).argmax(dim=2).cpu().numpy()
@@ -160,7 +177,8 @@ def _predict_batch(nets: dict, eft: EpipolarFeatureTransformer | None, batch: di
 def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | None = None,
             batch_size: int = 8, split: str = "test", split_file: str | Path | None = None,
             floor: str = "segmentation", min_object_probability: float | None = None,
-            min_overhead_object_probability: float | None = None,
+            min_overhead_object_probability: float | None = None, operating_point: str = "given",
+            operating_point_views: int = 48,
             device: str = "auto", workers: int | None = None, overwrite: bool = False,
             progress=None) -> PredictSummary:
     """Write the predictions of ``run`` for the views of ``split`` of ``store`` to a new store ``out``.
@@ -172,6 +190,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     min_object_probability, min_overhead_object_probability : None (the arg-max, the
                  paper's), or the least object probability of a kept pixel of the frontal
                  layers (D1..D4) and of the overhead heights (:func:`~.networks.object_pixels`)
+    operating_point : "given" (the two thresholds above) or "validation": both chosen on at
+                 most ``operating_point_views`` views of the split's validation houses
+                 (:mod:`.operating_point`; the thresholds must then be None)
     workers    : DataLoader worker processes reading the store (None: the trainer's default,
                  :func:`~.trainer.default_workers`; 0: read in this process)
     progress   : a :class:`sceneforge.pipeline.Progress` (``start``/``advance`` in views)
@@ -183,6 +204,12 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     from sceneforge.store import StoreWriter, open_store
 
     t0 = time.perf_counter()
+    if operating_point not in OPERATING_POINTS:
+        raise ValueError(f"operating_point must be one of {OPERATING_POINTS}, got {operating_point!r}")
+    if operating_point == "validation" and (min_object_probability, min_overhead_object_probability) != (None, None):
+        raise SceneforgeError("--operating-point validation chooses the least object probabilities on the "
+                              "validation houses: give no --min-object-probability or "
+                              "--min-overhead-object-probability with it")
     check_apart(out, "prediction store", [("input store", store), ("run", run), ("camera run", camera_run),
                                           ("split file", split_file)])
     check_store_output(out, "prediction", overwrite=overwrite)
@@ -194,8 +221,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
 
         index = index_stores([store])
         houses = None
-        if split != "all":
+        if split != "all" or operating_point == "validation":
             chosen = read_split(split_file or config.split.file or default_split_file(config.stores))
+        if split != "all":
             houses = chosen.of(split)
             index = index.subset(houses)
             if not len(index):
@@ -210,12 +238,22 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         loader = make_loader(dataset, dev, default_workers() if workers is None else workers,
                              batch_size=batch_size)
 
+        if operating_point == "validation":
+            point = choose_operating_point(nets, eft, store, source, index_stores([store]).subset(chosen.of("val")),
+                                           camera_run is not None, floor, dev, batch_size, workers,
+                                           operating_point_views, progress)
+            min_object_probability = point.min_object_probability
+            min_overhead_object_probability = point.min_overhead_object_probability
+        else:
+            point = OperatingPoint("given", min_object_probability, min_overhead_object_probability)
+
         render_config = _prediction_config(source.config)
         n = len(source)
         prediction = {"run": str(Path(run).resolve()), "stage": config.stage, "stages": list(stages),
                       "source": str(store), "camera_run": None if camera_run is None else str(Path(camera_run).resolve()),
                       "min_height": MIN_HEIGHT, "floor": floor, "min_object_probability": min_object_probability,
                       "min_overhead_object_probability": min_overhead_object_probability,
+                      "operating_point": point.to_dict(),
                       "split": split, "views": [int(i) for i in valid],
                       "split_file": None if houses is None else str(chosen.path)}
         # recorded from the start: an interrupted prediction store is still known as predict's
@@ -242,7 +280,72 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         writer.finalize(render_config, source.attrs["houses_source"], n, houses=source.attrs["houses"],
                         failures=source.attrs["failures"], prediction=prediction)
     return PredictSummary(str(out), n, len(valid), stages, time.perf_counter() - t0, split,
-                          len(set(index.house)))
+                          len(set(index.house)), point)
+
+
+def choose_operating_point(nets: dict, eft: EpipolarFeatureTransformer | None, store: str, source: "SceneStore",
+                           index: "ViewIndex",
+                           camera: bool, floor: str, dev: torch.device, batch_size: int, workers: int | None,
+                           most: int, progress=None, seed: int = 0) -> OperatingPoint:
+    """The thresholds where precision meets recall on at most ``most`` views of ``index``
+    (the validation houses' views of ``store``, opened as ``source``), by
+    :data:`.operating_point.RULE`.
+
+    The ground-truth meshes are the store's, or made from its houses and cached beside it
+    as ``sceneforge evaluate`` does. Raises :class:`SceneforgeError` without views to
+    choose on, or without a segmentation net (nothing to threshold).
+    """
+    import time
+
+    from sceneforge.evaluate import EvalView, GroundTruthMesh
+    from sceneforge.pipeline.gt_mesh import GroundTruthMeshes, cache_folder
+
+    from .operating_point import GRID, CandidateView, evenly, score_views
+
+    t0 = time.perf_counter()
+    if "seg" not in nets:
+        raise SceneforgeError("--operating-point validation sets the segmentation nets' thresholds: "
+                              "this run has no segmentation net")
+    if not len(index):
+        raise SceneforgeError(f"{store} has no valid view of the validation houses: the operating point is "
+                              "chosen on them (give the thresholds instead: --operating-point given)")
+    index = index.take(evenly(range(len(index)), most))
+    meshes = GroundTruthMeshes(source, cache_folder(store))
+    fronts = GRID
+    tops = GRID if eft is not None and floor == "segmentation" else (None,)
+    loader = make_loader(StoreDataset(index, ("rgb", "camera")), dev,
+                         default_workers() if workers is None else workers, batch_size=batch_size)
+    if progress:
+        progress.start("choosing the operating point", len(index), "views")
+
+    def candidates():
+        with torch.no_grad():
+            for batch in loader:
+                batch = {k: v.to(dev) for k, v in batch.items()}
+                outputs = _predict_batch(nets, eft, batch, camera, floor, scores=True)
+                for row, i in enumerate(index.view[batch["index"].cpu().numpy()]):
+                    arrays = dict(source.view(int(i)))
+                    arrays.update({k: outputs[k][row] for k in outputs
+                                   if k in ("depth", "overhead_height", "overhead_cam_to_world",
+                                            "overhead_extent", "overhead_params")})
+                    front = outputs["front_score"][row]
+                    top = outputs.get("top_score")
+                    view = EvalView.from_arrays(arrays)
+                    if top is None:  # no overhead net: no overhead part
+                        view = replace(view, overhead_height=np.full_like(view.overhead_height, np.nan))
+                        top = np.full(view.overhead_height.shape, -1.0, np.float32)
+                    else:
+                        top = top[row]
+                    yield int(i), CandidateView(view, front, top), GroundTruthMesh.from_arrays(meshes.mesh(int(i)))
+                    if progress:
+                        progress.advance(1)
+
+    try:
+        precision, recall = score_views(candidates(), fronts, tops, seed)
+    finally:
+        end_workers(loader)
+    return OperatingPoint.chosen(precision, recall, fronts, tops, len(index), len(set(index.house)),
+                                 time.perf_counter() - t0)
 
 
 def _load_nets(run: str | Path, camera_run: str | Path | None, dev: torch.device) -> tuple:
