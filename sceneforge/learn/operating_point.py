@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 import numpy as np
 
 from ..conventions import LAYER_NAMES
+from ..evaluate.coverage import _nanmean
 
 if TYPE_CHECKING:
     from ..evaluate import EvalView, GroundTruthMesh, MeshingConfig
@@ -201,13 +202,6 @@ def _threshold(t: float | None) -> str:
 
 def _table(a: np.ndarray) -> list[list[float | None]]:
     return [[float(x) if np.isfinite(x) else None for x in row] for row in a]
-
-
-def _nanmean(a: np.ndarray) -> np.ndarray:
-    finite = np.isfinite(a)
-    n = finite.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, np.where(finite, a, 0.0).sum(axis=0) / np.maximum(n, 1), np.nan)
 
 
 def evenly(indices: Sequence[int], most: int) -> list[int]:

@@ -31,6 +31,7 @@ segmentation runs).
 from __future__ import annotations
 
 import math
+import typing
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -40,7 +41,8 @@ import torch
 
 from ..errors import SceneforgeError
 from ..store.guard import check_apart, check_store_output
-from .dataset import CLASS_TO_NYU40, SEG_CLASSES, StoreDataset, index_stores
+from .config import OperatingPointRule
+from .dataset import CLASS_TO_NYU40, SAMPLE_FIELDS, SEG_CLASSES, StoreDataset, index_stores
 from .eft import EpipolarFeatureTransformer
 from .networks import SEG_LAYERS, masked_layers, object_pixels, object_scores
 from .operating_point import OperatingPoint
@@ -55,8 +57,6 @@ if TYPE_CHECKING:
 
     from .dataset import ViewIndex
 
-#: how the object-probability thresholds are set (:mod:`.operating_point`)
-OPERATING_POINTS = ("given", "validation")
 #: predicted heights at or below this (metres above the floor) are floor: NaN
 MIN_HEIGHT = 0.05
 #: arrays copied from the source store (the overhead camera ones unless a camera run places them)
@@ -204,8 +204,9 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
     from sceneforge.store import StoreWriter, open_store
 
     t0 = time.perf_counter()
-    if operating_point not in OPERATING_POINTS:
-        raise ValueError(f"operating_point must be one of {OPERATING_POINTS}, got {operating_point!r}")
+    if operating_point not in typing.get_args(OperatingPointRule):
+        raise ValueError(f"operating_point must be one of {typing.get_args(OperatingPointRule)}, "
+                         f"got {operating_point!r}")
     if operating_point == "validation" and (min_object_probability, min_overhead_object_probability) != (None, None):
         raise SceneforgeError("--operating-point validation chooses the least object probabilities on the "
                               "validation houses: give no --min-object-probability or "
@@ -219,7 +220,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
         dev = resolve_device(device)
         config, nets, stages = _load_nets(run, camera_run, dev)
 
-        index = index_stores([store])
+        every = index = index_stores([store])
         houses = None
         if split != "all" or operating_point == "validation":
             chosen = read_split(split_file or config.split.file or default_split_file(config.stores))
@@ -239,7 +240,7 @@ def predict(run: str | Path, store: str, out: str, *, camera_run: str | Path | N
                              batch_size=batch_size)
 
         if operating_point == "validation":
-            point = choose_operating_point(nets, eft, store, source, index_stores([store]).subset(chosen.of("val")),
+            point = choose_operating_point(nets, eft, store, source, every.subset(chosen.of("val")),
                                            camera_run is not None, floor, dev, batch_size, workers,
                                            operating_point_views, progress)
             min_object_probability = point.min_object_probability
@@ -323,11 +324,12 @@ def choose_operating_point(nets: dict, eft: EpipolarFeatureTransformer | None, s
             for batch in loader:
                 batch = {k: v.to(dev) for k, v in batch.items()}
                 outputs = _predict_batch(nets, eft, batch, camera, floor, scores=True)
+                cameras = {k: batch[k].cpu().numpy() for k in SAMPLE_FIELDS["camera"]}
                 for row, i in enumerate(index.view[batch["index"].cpu().numpy()]):
-                    arrays = dict(source.view(int(i)))
+                    # the loader's cameras, then what the nets predicted (a camera run's overhead cameras too)
+                    arrays = {k: v[row] for k, v in cameras.items()}
                     arrays.update({k: outputs[k][row] for k in outputs
-                                   if k in ("depth", "overhead_height", "overhead_cam_to_world",
-                                            "overhead_extent", "overhead_params")})
+                                   if k in ("depth", "overhead_height", *SAMPLE_FIELDS["camera"])})
                     front = outputs["front_score"][row]
                     top = outputs.get("top_score")
                     view = EvalView.from_arrays(arrays)
