@@ -28,8 +28,11 @@ from sceneforge.learn.trainer import (  # noqa: E402
     MetricsLog,
     Position,
     Trainer,
+    _to,
+    collate,
     default_workers,
     make_loader,
+    memory_format,
     resolve_amp,
 )
 
@@ -219,6 +222,24 @@ def test_bf16_autocast_on_the_cpu_runs_the_nets_in_bf16_with_losses_close_to_flo
     for a, b in zip(losses["off"], losses["bf16"]):
         assert b == pytest.approx(a, rel=0.03), losses
     assert losses["bf16"] != losses["off"]
+
+
+def test_bf16_on_the_cpu_trains_the_recipes_depth_net_with_finite_gradients():
+    """PyTorch 2.13's bfloat16 backward of a dilated convolution on the CPU gives NaN
+    gradients (or crashes) in channels-last: the recipe's depth net (width 0.5, 80×60)
+    diverged at its first step. Autocast on the CPU keeps nets and images contiguous."""
+    assert memory_format(CPU, "bf16") == torch.contiguous_format
+    assert memory_format(CPU, "off") == torch.channels_last
+    assert memory_format(torch.device("cuda"), "bf16") == torch.channels_last
+    trainer = Trainer(TrainConfig(stage="depth", stores=("unread",), batch_size=8, width=0.5, amp="bf16",
+                                  bn_momentum=0.1), {}, None, CPU)
+    views = _Views(8, size=64)
+    batch = collate([views[i] for i in range(8)])  # as a loader's worker hands it: channels-last
+    for step in range(2):
+        loss = trainer.step(_to(batch, CPU, trainer.layout), step)["loss"]
+        assert torch.isfinite(loss), step
+        bad = [n for n, p in trainer.nets["depth"].named_parameters() if not torch.isfinite(p).all()]
+        assert not bad, (step, bad[:3])
 
 
 def test_fp16_scales_the_loss_and_saves_the_scaler(tmp_path):

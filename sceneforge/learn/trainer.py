@@ -200,14 +200,27 @@ def resolve_amp(amp: str, device: torch.device) -> str:
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
 
-def _to(batch: dict[str, Tensor], device: torch.device) -> dict[str, Tensor]:
-    """The batch on ``device``, its images channels-last (NHWC): cuDNN's convolutions (and
-    tensor cores under mixed precision) and oneDNN's on the CPU are fastest so (a width-0.25
-    depth step of 8 views at 160×120 on 2 cores: 0.58 s against 0.77 s contiguous)."""
+def memory_format(device: torch.device, amp: str) -> torch.memory_format:
+    """The layout of the nets and images on ``device`` in mixed precision ``amp`` (resolved,
+    :func:`resolve_amp`): channels-last (NHWC), where cuDNN's convolutions (and tensor
+    cores under mixed precision) and oneDNN's fp32 ones on the CPU are fastest (a
+    width-0.25 depth step of 8 views at 160×120 on 2 cores: 0.58 s against 0.77 s
+    contiguous); but contiguous for autocast on the CPU, where PyTorch 2.13's bfloat16
+    backward of a dilated convolution in channels-last gives NaN gradients or crashes
+    (the depth net's first step; ``tests/test_learn_amp.py``)."""
+    if device.type == "cpu" and amp != "off":
+        return torch.contiguous_format
+    return torch.channels_last
+
+
+def _to(batch: dict[str, Tensor], device: torch.device,
+        layout: torch.memory_format = torch.channels_last) -> dict[str, Tensor]:
+    """The batch on ``device``, its images (4-D floating tensors) in ``layout``
+    (:func:`memory_format`)."""
     out = {}
     for k, v in batch.items():
         if v.dim() == 4 and v.is_floating_point():
-            out[k] = v.to(device, non_blocking=True, memory_format=torch.channels_last)
+            out[k] = v.to(device, non_blocking=True, memory_format=layout)
         else:
             out[k] = v.to(device, non_blocking=True)
     return out
@@ -225,7 +238,8 @@ class Trainer:
 
     Mixed precision (``config.amp``, :func:`resolve_amp`): the nets' forward pass runs
     under autocast, the losses in float32; fp16 scales the loss (a GradScaler, its state
-    saved in the checkpoint). The nets and images are channels-last.
+    saved in the checkpoint). The nets and images are channels-last but for autocast on the
+    CPU (:func:`memory_format`).
     With ``dist`` enabled, the nets train as DistributedDataParallel copies (``train_nets``;
     ``nets`` are the modules themselves, what checkpoints save), their BatchNorms over the
     whole batch when ``config.sync_batchnorm``.
@@ -240,14 +254,15 @@ class Trainer:
         if self.amp == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
             raise SceneforgeError(f"--amp bf16: {torch.cuda.get_device_name(device)} has no bfloat16; "
                                   "use --amp fp16 or off")
+        self.layout = memory_format(device, self.amp)
         torch.manual_seed(config.seed)
         self.nets = self.stage.build(config, frontal)
         for name, net in self.nets.items():
             if self.dist.enabled and config.sync_batchnorm:
                 net = self.nets[name] = sync_batchnorm(net, device)
-            net.to(device, memory_format=torch.channels_last).train()
+            net.to(device, memory_format=self.layout).train()
         for net in frontal.values():
-            net.to(memory_format=torch.channels_last)
+            net.to(memory_format=self.layout)
         params = [p for net in self.nets.values() for p in net.parameters()]
         self.optimizer = torch.optim.Adam(params, lr=config.lr)
         self.scaler = torch.amp.GradScaler(device.type, enabled=self.amp == "fp16")
@@ -311,7 +326,7 @@ class Trainer:
         try:
             with torch.no_grad():
                 for batch in loader:
-                    batch = _to(batch, self.device)
+                    batch = _to(batch, self.device, self.layout)
                     outputs = self._outputs(self.nets, batch)
                     loss, _ = self.stage.objective(self.config, outputs, batch)
                     self.stage.measure(self.config, outputs, batch, metrics)
@@ -619,7 +634,7 @@ class EpochLoop:
         self.sampler.set_epoch(at.epoch, at.batch)
         for batch in self._train_loader:
             with held_interrupts():
-                batch = _to(batch, dev)
+                batch = _to(batch, dev, self.trainer.layout)
                 self.trainer.set_lr(learning_rate(config, at.step, self.total))
                 losses = self.trainer.step(batch, at.step)
                 self._window.add(at.step, len(batch["index"]), losses)
