@@ -52,6 +52,7 @@ from sceneforge.learn.eft import EpipolarFeatureTransformer, segment_pairs
 from sceneforge.learn.networks import DEPTH_NET, SEG_NET
 from sceneforge.learn.stages import get_stage
 from sceneforge.learn.train import TrainConfig
+from sceneforge.learn.trainer import memory_format
 
 STAGES = ("depth", "seg", "overhead", "camera")
 #: the paper's frontal image (H, W) and overhead resolution
@@ -70,6 +71,11 @@ class Precision:
         if self.dtype is None:
             return nullcontext()
         return torch.autocast(device.type, dtype=self.dtype)
+
+    @property
+    def amp(self) -> str:
+        """The trainer's name of this precision (``TrainConfig.amp``)."""
+        return "off" if self.dtype is None else self.name
 
 
 PRECISIONS = {"fp32": Precision("fp32"), "bf16": Precision("bf16", torch.bfloat16),
@@ -191,15 +197,14 @@ def stage_config(stage: str, width: float) -> TrainConfig:
                        seg_run="synthetic" if stage == "overhead" else None)
 
 
-def frozen_nets(stage: str, width: float, device: torch.device, channels_last: bool) -> dict:
-    """Freshly initialised frontal nets, frozen as ``train`` freezes loaded runs."""
+def frozen_nets(stage: str, width: float, device: torch.device) -> dict:
+    """Freshly initialised frontal nets, frozen as ``train`` freezes loaded runs (each
+    precision's :func:`bench_stage` lays them out as it runs)."""
     nets = {}
     for name in get_stage(stage).frozen:
         nets.update(get_stage(name).build(stage_config(name, width), {}))
     for net in nets.values():
         net.to(device).eval().requires_grad_(False)
-        if channels_last:
-            net.to(memory_format=torch.channels_last)
     return nets
 
 
@@ -230,18 +235,29 @@ def step_flops(stage: str, width: float, H: int, W: int, R: int) -> float:
     return counter.get_total_flops()
 
 
+def layout(args, device: torch.device, precision: Precision) -> torch.memory_format:
+    """The nets' and images' memory layout in ``precision``: the trainer's
+    (:func:`~sceneforge.learn.trainer.memory_format`) unless ``--channels-last`` says."""
+    if args.channels_last is None:
+        return memory_format(device, precision.amp)
+    return torch.channels_last if args.channels_last else torch.contiguous_format
+
+
 def bench_stage(stage: str, precision: Precision, batch: dict, frontal: dict, args, device, R: int,
                 eft_fp32: bool = False):
     """Seconds per training step and the peak GiB (CUDA) of one stage in one precision
-    (``eft_fp32``: its EFT outside autocast, :class:`Fp32EFT`)."""
+    (``eft_fp32``: its EFT outside autocast, :class:`Fp32EFT`), nets and images in the
+    precision's :func:`layout`."""
     config = stage_config(stage, args.width)
     spec = get_stage(stage)
+    form = layout(args, device, precision)
     torch.manual_seed(0)
     nets = spec.build(config, frontal)
+    for net in (*nets.values(), *frontal.values()):
+        net.to(device, memory_format=form)
     for net in nets.values():
-        net.to(device).train()
-        if args.channels_last:
-            net.to(memory_format=torch.channels_last)
+        net.train()
+    batch = {**batch, "rgb": batch["rgb"].contiguous(memory_format=form)}
     params = [p for net in nets.values() for p in net.parameters()]
     optimizer = torch.optim.Adam(params, lr=config.lr)
     scaler = torch.amp.GradScaler(device.type, enabled=precision.name == "fp16")
@@ -393,13 +409,20 @@ def parse_args():
                         help="network width multiplier (default: 1 = the paper's; --quick: 0.25)")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: 160x120 images, 150x150 overhead, width 0.25, batch 1, 1 step")
+    parser.add_argument("--size", default=None, metavar="WxH",
+                        help="frontal image size (default: 320x240, the paper's; --quick: 160x120; "
+                             "the CPU learning recipe's: 80x60)")
+    parser.add_argument("--overhead", type=int, default=None, metavar="R",
+                        help="overhead map resolution (default: 300, the paper's; --quick: 150; the CPU recipe's: 64)")
     parser.add_argument("--stages", default=",".join(STAGES),
                         help="comma-separated stages to time (none: the EFT alone)")
     parser.add_argument("--precisions", default=None,
                         help="comma-separated from fp32, bf16, fp16 (default: fp32,bf16 on the CPU, "
                              "fp32,bf16,fp16 on a GPU)")
     parser.add_argument("--channels-last", action=argparse.BooleanOptionalAction, default=None,
-                        help="nets and images in channels-last memory (default: on a GPU only)")
+                        help="nets and images in channels-last memory in every precision (default: as the "
+                             "trainer lays them out: channels-last but for autocast on the CPU, where "
+                             "PyTorch's channels-last bf16 backward of a dilated convolution gives NaN)")
     parser.add_argument("--no-eft", action="store_true", help="skip the EFT timings")
     parser.add_argument("--eft-steps", type=int, default=None,
                         help="timed calls of the EFT and of its reference each, the median reported "
@@ -420,8 +443,18 @@ def parse_args():
     for key, value in defaults.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-    if args.channels_last is None:
-        args.channels_last = gpu
+    if args.size is None:
+        args.size = (120, 160) if args.quick else PAPER_SIZE
+    else:
+        try:
+            W, H = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            parser.error(f"--size {args.size}: give WxH, e.g. 80x60")
+        args.size = (H, W)
+    H, W = args.size
+    args.overhead = args.overhead or (150 if args.quick else PAPER_OVERHEAD)
+    if min(H, W, args.overhead) < 1:
+        parser.error("--size and --overhead must be positive")
     args.stages = [] if args.stages in ("", "none") else args.stages.split(",")
     args.precisions = (args.precisions or ("fp32,bf16,fp16" if gpu else "fp32,bf16")).split(",")
     unknown = set(args.precisions) - set(PRECISIONS) | set(args.stages) - set(STAGES)
@@ -439,11 +472,13 @@ def parse_args():
 
 def main() -> None:
     args, device = parse_args()
-    (H, W), R = ((120, 160), 150) if args.quick else (PAPER_SIZE, PAPER_OVERHEAD)
+    (H, W), R = args.size, args.overhead
     print(f"device: {describe(device)}"
           + ("" if device.type == "cuda" or torch.cuda.is_available() else "; torch sees no GPU: CPU figures only"))
     print(f"sizes: {W}x{H} RGB, {R}x{R} overhead, width {args.width:g} (1 = the paper's), batch {args.batch}, "
-          f"{args.steps} timed step(s) after {args.warmup} warm-up, channels-last {'on' if args.channels_last else 'off'}")
+          f"{args.steps} timed step(s) after {args.warmup} warm-up; layouts: "
+          + ", ".join(f"{p} {'channels-last' if layout(args, device, PRECISIONS[p]) == torch.channels_last else 'contiguous'}"
+                      for p in args.precisions))
     precisions = [PRECISIONS[p] for p in args.precisions]
     amp = precisions[1:]
     eft_fp32 = {}
@@ -453,11 +488,11 @@ def main() -> None:
         if error:
             print(f"EFT under {p.name} autocast on {device.type}: {error}; in {p.name} steps it runs in fp32 "
                   f"(autocast off, features cast up)")
-    batch = to_device(synthetic_batch(args.batch, H, W, R), device, args.channels_last)
+    batch = to_device(synthetic_batch(args.batch, H, W, R), device, False)
     rows = []  # (what, GFLOP per image or None, {precision: value}, higher_is_better, {precision: peak GiB})
 
     for stage in args.stages:
-        frontal = frozen_nets(stage, args.width, device, args.channels_last)
+        frontal = frozen_nets(stage, args.width, device)
         values, peaks = {}, {}
         for p in precisions:
             t0 = time.perf_counter()

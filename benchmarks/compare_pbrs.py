@@ -30,7 +30,11 @@ noise of both (median |Y − 5×5 median(Y)| over wall pixels 3 px inside their 
 0–255) and, by the same measure, the texture detail of their floors (the grain of a
 laminate: what the denoiser must keep), and the share of the window regions' pixels that are
 white (255, 255, 255) and near white (every channel at least 245) in both, per view: where
-the outdoors is burnt out. ``--regions`` lists every region (its instance's name and label from the house),
+the outdoors is burnt out; and the window regions' median luminance over the frame's (the
+pixels that see something), linear, in both: for the store, as shown (after its tone
+curve) and, where its curve is ``soft``, before the curve (the curve undone per channel; a
+window at byte 255 counts as the least value that byte holds, so the ratio is then a lower
+bound). ``--regions`` lists every region (its instance's name and label from the house),
 worst brightness first. ``--figure PNG`` writes the views side by side: the store's frame,
 each ``--with`` store's, then PBRS's, one row per view. A view whose PBRS image is missing is
 counted and skipped.
@@ -103,6 +107,23 @@ def wall_noise(rgb: np.ndarray, wall: np.ndarray) -> float | None:
     return float(np.median(np.abs(y - ndimage.median_filter(y, size=5))[region]))
 
 
+def window_ratio(rgb: np.ndarray, window: np.ndarray, seen: np.ndarray, tone: str | None = None) -> float | None:
+    """Median linear luminance of the ``window`` pixels over that of the ``seen`` ones. With
+    ``tone`` "soft" the curve is undone per channel first (bytes of 255 as the least value
+    they hold: a lower bound); "clip" or None: as shown; another curve: None."""
+    display = srgb_to_linear(rgb.astype(np.float64) / 255.0)
+    if tone == "soft":
+        from sceneforge.render.tonemap import SOFT_KNEE as k
+
+        top = float(srgb_to_linear(np.float64(254.5 / 255.0)))
+        w = np.minimum(display, top) - k
+        display = np.where(w > 0, k + w / (1.0 - w / (1.0 - k)), display)
+    elif tone not in (None, "clip"):
+        return None
+    y = display @ LUMINANCE
+    return float(np.median(y[window])) / max(float(np.median(y[seen])), 1e-9)
+
+
 def pbrs_path(root: Path, pattern: str | None, house: str, camera: int, houses: int) -> Path | None:
     """The PBRS image of a view: ``pattern``'s file, else the first of :data:`PATTERNS` that
     exists (the flat one only for a store of one house); None when there is none."""
@@ -133,6 +154,9 @@ class Comparison:
     #: per view with a window region: (camera, share of its pixels white (255, 255, 255)
     #: here, in PBRS, share near white (every channel >= 245) here, in PBRS)
     window_white: list[tuple[int, float, float, float, float]] = field(default_factory=list)
+    #: per view with a window region: (camera, median window luminance over the frame's here
+    #: as shown, here before the tone curve (None: curve not invertible), in PBRS)
+    window_ratio: list[tuple[int, float, float | None, float]] = field(default_factory=list)
     views: int = 0
     missing: int = 0
     #: (house, camera, ours (H, W, 3) uint8, PBRS resized to ours) per compared view
@@ -159,6 +183,7 @@ def compare(store_path: str, pbrs: Path, pattern: str | None = None, min_pixels:
             cameras: set[int] | None = None) -> Comparison:
     """Compare every valid view of the store (of ``cameras`` only, if given) with its PBRS image."""
     store = open_store(store_path)
+    tone = store.group.attrs.get("config", {}).get("rgb", {}).get("lighting", {}).get("tone")
     houses = len({str(store.view(k)["house_id"]) for k in range(len(store))})
     out = Comparison()
     for k in range(len(store)):
@@ -194,6 +219,8 @@ def compare(store_path: str, pbrs: Path, pattern: str | None = None, min_pixels:
         if window.any():
             out.window_white.append((camera, *(float((image[window] >= level).all(-1).mean())
                                                for level in (255, 245) for image in (ours, theirs))))
+            out.window_ratio.append((camera, window_ratio(ours, window, seen), window_ratio(ours, window, seen, tone),
+                                     window_ratio(theirs, window, seen)))
         for image, noise_into, detail_into in ((ours, out.noise_ours, out.detail_ours),
                                                (theirs, out.noise_theirs, out.detail_theirs)):
             noise, detail = wall_noise(image, wall), wall_noise(image, floor)
@@ -277,6 +304,13 @@ def main() -> None:
             per = ", ".join(f"{w[0]}: {w[k]:.0%} / {w[k + 1]:.0%}" for w in result.window_white)
             print(f"window pixels {name}, here / PBRS: {np.mean([w[k] for w in result.window_white]):.1%} / "
                   f"{np.mean([w[k + 1] for w in result.window_white]):.1%} (per camera {per})")
+    if result.window_ratio:
+        r = np.array([[w[1], np.nan if w[2] is None else w[2], w[3]] for w in result.window_ratio])
+        per = ", ".join(f"{w[0]}: {w[1]:.1f} / {'-' if w[2] is None else format(w[2], '.1f')} / {w[3]:.1f}"
+                        for w in result.window_ratio)
+        print(f"window / frame median luminance, here as shown / here before the curve / PBRS: "
+              f"{np.median(r[:, 0]):.1f} / {np.nanmedian(r[:, 1]) if np.isfinite(r[:, 1]).any() else float('nan'):.1f}"
+              f" / {np.median(r[:, 2]):.1f} (median of the views; per camera {per})")
     if args.regions:
         names: dict[str, list] = {}
         print(f"{'camera':>6} {'kind':<10} {'pixels':>6} {'dchroma':>7} {'stops':>6}  instance")
@@ -292,7 +326,8 @@ def main() -> None:
         args.json.write_text(json.dumps({"table": table, "rows": result.rows,
                                          "noise": [result.noise_ours, result.noise_theirs],
                                          "floor_detail": [result.detail_ours, result.detail_theirs],
-                                         "window_white": result.window_white}, indent=1))
+                                         "window_white": result.window_white,
+                                         "window_ratio": result.window_ratio}, indent=1))
     if args.figure:
         columns = [[f[2] for f in result.frames]]
         for other in args.also:

@@ -38,6 +38,7 @@ TRAIN_OPTIONS = (
     ConfigOption("--feature-cache-gib", "feature_cache_gib", type=click.FloatRange(min=0)),
     ConfigOption("--seg-empty", "loss.seg_empty"),
     ConfigOption("--seg-balance", "loss.seg_balance", type=click.FloatRange(0, 1)),
+    ConfigOption("--huber-delta", "loss.huber_delta", type=click.FloatRange(min=0, min_open=True)),
     ConfigOption("--val-fraction", "split.val_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--test-fraction", "split.test_fraction", type=click.FloatRange(0, 1)),
     ConfigOption("--split-seed", "split.seed"),

@@ -101,3 +101,26 @@ def test_command_prints_the_table_and_writes_the_figure(small_store, tmp_path):
     assert "(counter)" in out  # --regions names each instance and its label
     width, height = Image.open(figure).size
     assert (width, height) == (3 * (32 + 4) + 4, 6 * (24 + 14 + 4) + 4)  # ours | --with | PBRS, a row per view
+
+
+def test_window_ratio_undoes_the_soft_curve(compare):
+    """The window / frame median luminance: as shown it is the ratio of the displayed
+    (linear) values; with the ``soft`` curve undone it is the ratio before the curve, exact
+    below byte 255 (here a window 8.3x the frame, which the curve's shoulder compresses)."""
+    from sceneforge.colour import linear_to_srgb
+    from sceneforge.render.tonemap import soft
+
+    frame, window_value = 0.18, 1.5  # exposed linear luminances, grey (the window above the knee)
+    h, w = 4, 8
+    radiance = np.full((h, w), frame)
+    window = np.zeros((h, w), bool)
+    window[:, :3] = True
+    radiance[window] = window_value
+    rgb = np.round(np.repeat(linear_to_srgb(soft(radiance))[..., None], 3, -1) * 255).astype(np.uint8)
+    seen = np.ones((h, w), bool)
+    shown = compare.window_ratio(rgb, window, seen)
+    before = compare.window_ratio(rgb, window, seen, "soft")
+    assert shown == pytest.approx(float(soft(window_value)) / frame, rel=0.02)
+    assert before == pytest.approx(window_value / frame, rel=0.02)  # the curve undone
+    assert shown < 0.9 * before
+    assert compare.window_ratio(rgb, window, seen, "aces") is None  # not inverted

@@ -154,6 +154,9 @@ def test_class_balance_weighs_each_class_of_a_layer_alike():
     assert balanced == pytest.approx(((p_bg + p_other) / 2 + (p_other + p_bg) / 2) / 2, rel=1e-5)
     with pytest.raises(ValueError, match="seg_balance must be in"):
         LossConfig(seg_balance=2.0)
+    for bad in ({"huber_delta": 0.0}, {"envelope_weight": -1.0}, {"overhead_seg_weight": float("nan")}):
+        with pytest.raises(ValueError, match="must be"):
+            LossConfig(**bad)
 
 
 def test_changing_the_floors_height_target_leaves_the_height_loss_unchanged(store):
