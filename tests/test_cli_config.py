@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -218,6 +219,37 @@ def test_the_learning_checks_config_files_are_valid_configs_of_their_stage():
     assert '--config "$recipe/$stage.json"' in script and '--config "$recipe/predict.json"' in script
     assert 'recipe=${RECIPE:-' in script
     assert (root / "learning_check.sh").stat().st_mode & 0o111
+    cpu = {stage: resolve_config(TrainConfig, root / "learning" / f"{stage}.json", {"stores": ["gt.zarr"]})
+           for stage in ("depth", "seg", "overhead")}
+    assert {c.amp for c in cpu.values()} == {"bf16"} and cpu["depth"].loss.huber_delta == 0.1
+
+
+@pytest.mark.parametrize("amp", ["off", "bf16", None])
+def test_the_learning_check_passes_amp_to_every_training_stage(tmp_path, amp):
+    """AMP=… reaches the three ``train`` commands; unset, the CPU recipe's bf16 stays where
+    the CPU computes bfloat16 itself and becomes --amp off elsewhere."""
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning_check.sh"
+    log = tmp_path / "calls.txt"
+    fake = tmp_path / "sf"
+    fake.write_text(f'#!/bin/sh\necho "$*" >> {log}\n')
+    fake.chmod(0o755)
+    (tmp_path / "houses").mkdir()
+    env = {**os.environ, "SCENEFORGE": str(fake)}
+    env.pop("RECIPE", None)
+    env.pop("AMP", None)
+    if amp:
+        env["AMP"] = amp
+    subprocess.run(["bash", str(script), str(tmp_path / "houses"), str(tmp_path / "work")], env=env, check=True,
+                   capture_output=True)
+    trains = [line for line in log.read_text().splitlines() if line.startswith("train ")]
+    assert len(trains) == 3
+    try:
+        native = {"avx512_bf16", "amx_bf16"} & set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        native = set()
+    want = amp or (None if native else "off")
+    for line in trains:
+        assert (f"--amp {want}" in line) if want else ("--amp" not in line), line
 
 
 def test_help_imports_no_torch():

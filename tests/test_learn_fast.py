@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -240,6 +241,20 @@ def test_bf16_on_the_cpu_trains_the_recipes_depth_net_with_finite_gradients():
         assert torch.isfinite(loss), step
         bad = [n for n, p in trainer.nets["depth"].named_parameters() if not torch.isfinite(p).all()]
         assert not bad, (step, bad[:3])
+
+
+def test_bf16_on_a_cpu_that_emulates_it_warns(monkeypatch):
+    assert trainer_module.cpu_has_bf16("flags\t\t: fpu avx2 avx512f avx512_bf16 sha_ni\n")
+    assert trainer_module.cpu_has_bf16("flags : fpu amx_bf16 amx_tile\n")
+    assert not trainer_module.cpu_has_bf16("flags\t\t: fpu avx2 avx512f avx512bw\nbugs : avx512_bf16\n")
+    monkeypatch.setattr(trainer_module, "cpu_has_bf16", lambda: False)
+    with pytest.warns(UserWarning, match="emulates bfloat16"):
+        _trainer(amp="bf16")
+    monkeypatch.setattr(trainer_module, "cpu_has_bf16", lambda: True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _trainer(amp="bf16")
+        _trainer(amp="off")
 
 
 def test_fp16_scales_the_loss_and_saves_the_scaler(tmp_path):

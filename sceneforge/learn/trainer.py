@@ -33,6 +33,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
@@ -196,6 +197,19 @@ def resolve_amp(amp: str, device: torch.device) -> str:
     return "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else "off"
 
 
+def cpu_has_bf16(cpuinfo: str | None = None) -> bool:
+    """Whether the CPU computes bfloat16 itself: ``avx512_bf16`` or ``amx_bf16`` among the
+    flags of ``cpuinfo`` (default: /proc/cpuinfo; False where there is none). Elsewhere
+    PyTorch emulates bf16, several times slower than float32 (docs/benchmarks.md)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return False
+    flags = {f for line in cpuinfo.splitlines() if line.startswith("flags") for f in line.split(":", 1)[-1].split()}
+    return bool(flags & {"avx512_bf16", "amx_bf16"})
+
+
 #: autocast dtypes of the mixed-precision modes
 AMP_DTYPES = {"bf16": torch.bfloat16, "fp16": torch.float16}
 
@@ -254,6 +268,9 @@ class Trainer:
         if self.amp == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
             raise SceneforgeError(f"--amp bf16: {torch.cuda.get_device_name(device)} has no bfloat16; "
                                   "use --amp fp16 or off")
+        if self.amp == "bf16" and device.type == "cpu" and not cpu_has_bf16():
+            warnings.warn("--amp bf16 on a CPU without avx512_bf16 or amx_bf16: PyTorch emulates bfloat16 "
+                          "there, several times slower than --amp off", stacklevel=2)
         self.layout = memory_format(device, self.amp)
         torch.manual_seed(config.seed)
         self.nets = self.stage.build(config, frontal)
