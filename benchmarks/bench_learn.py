@@ -129,11 +129,10 @@ def synthetic_batch(B: int, H: int, W: int, R: int, seed: int = 0) -> dict[str, 
     }
 
 
-def to_device(batch: dict[str, torch.Tensor], device: torch.device, channels_last: bool):
-    out = {k: v.to(device) for k, v in batch.items()}
-    if channels_last:
-        out["rgb"] = out["rgb"].contiguous(memory_format=torch.channels_last)
-    return out
+def to_device(batch: dict[str, torch.Tensor], device: torch.device):
+    """The batch on ``device``, contiguous (each precision's :func:`bench_stage` lays its
+    images out)."""
+    return {k: v.to(device) for k, v in batch.items()}
 
 
 # ------------------------------------------------------------------------- timing
@@ -180,7 +179,7 @@ def eft_amp_error(precision: Precision, device: torch.device) -> str | None:
         return None
     from sceneforge.learn.stages import geometry
 
-    batch = to_device(synthetic_batch(1, 32, 32, 16, seed=2), device, False)
+    batch = to_device(synthetic_batch(1, 32, 32, 16, seed=2), device)
     try:
         with torch.no_grad(), precision.autocast(device):
             x = torch.ones(1, 2, 32, 32, device=device, dtype=precision.dtype)
@@ -488,7 +487,7 @@ def main() -> None:
         if error:
             print(f"EFT under {p.name} autocast on {device.type}: {error}; in {p.name} steps it runs in fp32 "
                   f"(autocast off, features cast up)")
-    batch = to_device(synthetic_batch(args.batch, H, W, R), device, False)
+    batch = to_device(synthetic_batch(args.batch, H, W, R), device)
     rows = []  # (what, GFLOP per image or None, {precision: value}, higher_is_better, {precision: peak GiB})
 
     for stage in args.stages:

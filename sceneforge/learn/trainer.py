@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import functools
 import importlib.util
 import math
 import multiprocessing
@@ -154,21 +155,22 @@ def end_workers(loader: torch.utils.data.DataLoader | None) -> None:
         iterator._shutdown_workers()
 
 
-def collate(samples: list):
+def collate(samples: list, layout: torch.memory_format = torch.channels_last):
     """The ``collate_fn`` of :func:`make_loader`: the batch that :class:`~.dataset.Samples`
     carry as it was read (else the default collation); of a batch of named tensors, every
-    4-D floating one channels-last as :func:`_to` moves it. Made so in the worker that read
-    the batch, it leaves the training process nothing to copy on the CPU, and a GPU copy
-    lands in the nets' layout."""
+    4-D floating one in ``layout`` (:func:`memory_format`), as :func:`_to` moves it. Made so
+    in the worker that read the batch, it leaves the training process nothing to copy on the
+    CPU, and a GPU copy lands in the nets' layout."""
     batch = samples.batch if isinstance(samples, Samples) else torch.utils.data.default_collate(samples)
     if not isinstance(batch, dict):
         return batch
-    return {k: v.contiguous(memory_format=torch.channels_last) if torch.is_tensor(v) and v.dim() == 4
+    return {k: v.contiguous(memory_format=layout) if torch.is_tensor(v) and v.dim() == 4
             and v.is_floating_point() else v for k, v in batch.items()}
 
 
 def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int = 1, batch_sampler=None,
-                timeout: float = 0, start: str | None = None) -> torch.utils.data.DataLoader:
+                timeout: float = 0, start: str | None = None,
+                layout: torch.memory_format = torch.channels_last) -> torch.utils.data.DataLoader:
     """A DataLoader of ``dataset`` in batches of ``batch_size`` in order, or those of
     ``batch_sampler``. A dataset with ``__getitems__`` (:class:`~.dataset.StoreDataset`)
     reads each batch at once, in the worker that makes it, and the batch comes as it was
@@ -179,8 +181,10 @@ def make_loader(dataset, device: torch.device, workers: int, *, batch_size: int 
     :func:`_to`). Batches come in the sampler's order whatever the number of workers.
 
     timeout : seconds to wait for a worker's batch before raising (0: for ever)
+    layout  : the images' memory layout (:func:`collate`; the nets', :func:`memory_format`)
     """
-    kw = {"num_workers": workers, "pin_memory": device.type == "cuda", "collate_fn": collate}
+    kw = {"num_workers": workers, "pin_memory": device.type == "cuda",
+          "collate_fn": functools.partial(collate, layout=layout)}
     if workers > 0:
         kw.update(multiprocessing_context=worker_context(start), persistent_workers=True, timeout=timeout,
                   prefetch_factor=PREFETCH, worker_init_fn=_leave_interrupts_to_the_parent)
@@ -221,7 +225,7 @@ def memory_format(device: torch.device, amp: str) -> torch.memory_format:
     width-0.25 depth step of 8 views at 160×120 on 2 cores: 0.58 s against 0.77 s
     contiguous); but contiguous for autocast on the CPU, where PyTorch 2.13's bfloat16
     backward of a dilated convolution in channels-last gives NaN gradients or crashes
-    (the depth net's first step; ``tests/test_learn_amp.py``)."""
+    (the depth net's first step; ``tests/test_learn_fast.py``)."""
     if device.type == "cpu" and amp != "off":
         return torch.contiguous_format
     return torch.channels_last
@@ -339,7 +343,8 @@ class Trainer:
         total, n, metrics = torch.zeros((), dtype=torch.float64, device=self.device), 0, Metrics()
         own = loader is None
         if own:
-            loader = make_loader(dataset, self.device, workers, batch_size=self.config.batch_size)
+            loader = make_loader(dataset, self.device, workers, batch_size=self.config.batch_size,
+                                 layout=self.layout)
         try:
             with torch.no_grad():
                 for batch in loader:
@@ -605,10 +610,12 @@ class EpochLoop:
         self.images_per_s = 0.0
         self.started = time.perf_counter()
         dev = trainer.device
-        self._train_loader = make_loader(train_set, dev, workers, batch_sampler=self.sampler)
+        layout = self.trainer.layout
+        self._train_loader = make_loader(train_set, dev, workers, batch_sampler=self.sampler, layout=layout)
         self._val_loader = None
         if val_set is not None and self.dist.is_main:
-            self._val_loader = make_loader(val_set, dev, workers, batch_size=self.config.batch_size)
+            self._val_loader = make_loader(val_set, dev, workers, batch_size=self.config.batch_size,
+                                           layout=layout)
         self._window = _TrainWindow()
         self.at = Position()
 
