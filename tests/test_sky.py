@@ -117,12 +117,13 @@ def test_the_outdoors_shows_through_a_windows_glass():
     """A window with glass (a face group of opacity < 1, as SUNCG's window models have):
     the raster mode draws its frame lit like any surface and, through the glass, the
     outdoors (the dome of :func:`sky.dome`: the sky's radiance × ``sky_luminance`` along
-    each ray); the window still lights the room. The layers see the glass as before."""
+    each ray, × ``outdoors_seen``); the window still lights the room. The layers see the
+    glass as before."""
     pytest.importorskip("pyrender")
     from sceneforge.render import Renderer
 
     house, camera, pane = _glazed_window_house()
-    config = RenderConfig(sky_luminance=900.0)
+    config = RenderConfig(sky_luminance=900.0, outdoors_seen=1.0)
     with Renderer(64, 48, config=config) as r:
         radiance, seen = r.render_linear(house, camera)
     origins, directions, _ = camera.rays()
@@ -134,6 +135,31 @@ def test_the_outdoors_shows_through_a_windows_glass():
     assert (radiance[frame] @ Y).max() < 0.2 * (expected @ Y).min()  # the frame is lit, not a panel
     (light,) = house_lights(house, config)
     assert light.source == "window"  # the daylight still comes in
+
+
+@pytest.mark.parametrize("mode", ["raster", "pathtraced"])
+def test_the_outdoors_is_seen_dimmed_and_lights_the_room_undimmed(mode):
+    """``outdoors_seen`` scales the outdoors where the camera sees it through glass, and
+    nothing else: every pixel that sees the dome is that fraction of itself at 1, every
+    pixel that sees the room (lit through the same window) is unchanged to the bit; in the
+    path tracer only the pixels the glass's edge crosses lie between the two (antialiased)."""
+    mode == "raster" and pytest.importorskip("pyrender")
+    mode == "pathtraced" and pytest.importorskip("mitsuba")
+    from sceneforge.render import open_renderer
+
+    house, camera, pane = _glazed_window_house()
+    options = {"samples": 4, "denoise": False} if mode == "pathtraced" else {}
+    radiance = {}
+    for seen in (1.0, 0.1):
+        with open_renderer(mode, 64, 48, config=RenderConfig(sky_luminance=900.0, outdoors_seen=seen),
+                           **options) as r:
+            radiance[seen] = r.render_linear(house, camera)[0] @ Y
+    ratio = radiance[0.1] / radiance[1.0]
+    sky_seen, room = np.isclose(ratio, 0.1, rtol=1e-5), ratio == 1.0
+    assert sky_seen[pane].all() and room.sum() > 100  # the floor and the frame
+    edge = ~(sky_seen | room)
+    assert not edge.any() if mode == "raster" else edge.sum() < 0.05 * edge.size
+    assert ((ratio[edge] > 0.1) & (ratio[edge] < 1.0)).all()
 
 
 def test_zbuffer_depth_sees_a_windows_glass():

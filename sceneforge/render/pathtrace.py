@@ -22,7 +22,11 @@ the vertex colours. The lights are the raster mode's (:mod:`sceneforge.render.li
 the same lumens and candela): point lights for lamps and fallbacks, and every window an
 area emitter of the sky's radiance (its faces wound into the room, reflecting nothing)
 in place of the raster mode's spot light; no ambient term (the path tracer traces the
-indirect light). The radiance goes through the same exposure and tone-mapping step as
+indirect light). Behind a glazed window's glass the outdoors' dome emits the sky's full
+radiance, which lights the rooms, while the camera sees it at ``outdoors_seen`` × that: the
+``aov`` integrator also gives the shape each sample's camera ray meets first, and a sample
+that meets the dome (which reflects nothing, so it brings back only the dome's emission) is
+scaled before the samples are averaged. The radiance goes through the same exposure and tone-mapping step as
 the raster mode's (:func:`sceneforge.render.tonemap.tonemap`). The integrator is
 Mitsuba's ``path`` with :data:`MAX_DEPTH` bounces, inside an ``aov`` integrator that also
 averages each pixel's albedo and shading normal; with ``denoise`` (the default) Intel Open
@@ -251,7 +255,7 @@ class PathTracer(ToneMapped):
             from .denoise import denoise as check  # a missing pyoidn fails here, not at the first view
 
             check(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)), np.zeros((1, 1, 3)))
-        self._house = self._scene = None
+        self._house = self._scene = self._sky_id = None
 
     @property
     def variant(self) -> str:
@@ -265,7 +269,8 @@ class PathTracer(ToneMapped):
         check_camera_size(camera, self.width, self.height)
         mi = self.mi
         if house is not self._house:
-            self._scene, self._house = self._build_scene(house), house
+            self._scene, self._sky_id = self._build_scene(house)
+            self._house = house
         spec = mitsuba_sensor(camera)
         sensor = mi.load_dict({
             **spec,
@@ -276,10 +281,16 @@ class PathTracer(ToneMapped):
         })
         view_seed = (self.seed * 1_000_003 + zlib.crc32(camera.K.tobytes() + camera.cam_to_world.tobytes())) % 2 ** 31
         # channels: radiance RGB, alpha, then the aov integrator's albedo RGB and normal XYZ
+        # (and, with an outdoors to dim, the registry id of the shape each sample first hits)
         total = np.zeros((self.height, self.width, 10))
         for k in range(self.samples):
             image = mi.render(self._scene, sensor=sensor, spp=1, seed=view_seed + k)
-            total += np.nan_to_num(np.asarray(image, dtype=np.float64)[..., :10], nan=0.0, posinf=0.0, neginf=0.0)
+            sample = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+            if self._sky_id is not None:
+                # one sample per pixel and pass (a box filter of ½ pixel): a sample whose camera
+                # ray meets the outdoors' dome first sees only its emission (it reflects nothing)
+                sample[..., :3] *= np.where(sample[..., 10:11] == self._sky_id, self.config.outdoors_seen, 1.0)
+            total += sample[..., :10]
         out = total / self.samples
         radiance = out[..., :3]
         if self.denoise:
@@ -293,7 +304,7 @@ class PathTracer(ToneMapped):
 
     def close(self) -> None:
         """Forget the scene. Idempotent."""
-        self._house = self._scene = None
+        self._house = self._scene = self._sky_id = None
         self.mi = None
 
     def __enter__(self) -> "PathTracer":
@@ -305,17 +316,21 @@ class PathTracer(ToneMapped):
     # -- internals ----------------------------------------------------------------------
 
     def _build_scene(self, house: "House"):
+        """The Mitsuba scene of ``house`` and the registry id of its outdoors' dome when the
+        camera sees the dome dimmed (``outdoors_seen`` below 1), else None."""
         mi = self.mi
-        # a pixel sees nothing beyond the house (the background is applied after tone mapping)
-        # the aov integrator adds each sample's albedo and shading normal (the denoiser's guides)
-        scene: dict = {"type": "scene", "integrator": {
-            "type": "aov", "aovs": "albedo:albedo,normal:sh_normal",
-            "integrator": {"type": "path", "max_depth": MAX_DEPTH}}}
         lights = house_lights(house, self.config)
         # a glazed window is drawn without its glass, and the outdoors (a dome emitting the
         # sky's radiance) lights the room through it; any other window is an area emitter of
         # the outdoors' mean radiance, its faces turned into the room
         glazed = glazed_windows(house) if self.config.sky_luminance > 0 else frozenset()
+        dim = bool(glazed) and self.config.outdoors_seen != 1.0
+        # a pixel sees nothing beyond the house (the background is applied after tone mapping)
+        # the aov integrator adds each sample's albedo and shading normal (the denoiser's
+        # guides) and, to dim the outdoors where the camera sees it, the shape it first hits
+        aovs = "albedo:albedo,normal:sh_normal" + (",shape:shape_index" if dim else "")
+        scene: dict = {"type": "scene", "integrator": {
+            "type": "aov", "aovs": aovs, "integrator": {"type": "path", "max_depth": MAX_DEPTH}}}
         windows = {light.instance: light for light in lights
                    if light.source == "window" and light.instance not in glazed}
         textures: dict[tuple, object] = {}
@@ -328,11 +343,20 @@ class PathTracer(ToneMapped):
         for k, light in enumerate(light for light in lights if light.kind == "point"):
             scene[f"light{k:06d}"] = {"type": "point", "position": light.position.tolist(),
                                       "intensity": {"type": "rgb", "value": [light.intensity] * 3}}
-        return mi.load_dict(scene)
+        loaded = mi.load_dict(scene)
+        if not dim:
+            return loaded, None
+        # the aov integrator's shape_index is a shape's Dr.Jit registry id, not its position
+        import drjit as dr
+
+        ids = np.asarray(dr.reinterpret_array(mi.UInt32, loaded.shapes_dr()), dtype=np.float64)
+        (sky_id,) = (i for i, shape in zip(ids, loaded.shapes(), strict=True) if shape.id() == "sky")
+        return loaded, float(sky_id)
 
     def _sky(self, house: "House"):
         """The outdoors: the raster mode's dome (:func:`.sky.dome`), an area emitter whose
-        radiance is its vertex colours × ``sky_luminance``, facing inwards, reflecting nothing."""
+        radiance is its vertex colours × ``sky_luminance``, facing inwards, reflecting nothing
+        (what the camera sees of it is scaled in :meth:`render_linear`)."""
         mi = self.mi
         bounds = house.bounds()
         centre = bounds.mean(axis=0)

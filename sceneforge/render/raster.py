@@ -36,7 +36,7 @@ applied where it was drawn (see "Tone mapping" below). A window with glass (a fa
 of opacity below 1) is drawn without its glass (in the RGB; the z-buffer of
 :meth:`Renderer.depth` has it, and not the dome, as the layers do), its frame lit like any
 surface, and through it the outdoors shows: a dome around the house with the radiance of
-:mod:`sceneforge.render.sky` as vertex colours (unlit); other windows are drawn emitting
+:mod:`sceneforge.render.sky` × ``outdoors_seen`` as vertex colours (unlit); other windows are drawn emitting
 the outdoors' mean radiance.
 A room's geometry is one pyrender mesh lit by that room's lights only (and those of a room
 drawn over the same space, :func:`~sceneforge.render.lights.light_rooms`; up to
@@ -142,6 +142,12 @@ class RenderConfig:
     #: ground, daylight-coloured); every window lights its room as a panel of this radiance,
     #: and glazed windows show the outdoors through their glass (0: windows give no light)
     sky_luminance: float = 1000.0
+    #: the outdoors as the camera sees it through a window's glass, as a fraction of the
+    #: radiance with which it lights the rooms (it changes no light): 0.1 shows it about as
+    #: bright beside the room as PBRS's photographed outdoors (a window's median luminance
+    #: 2-3× the frame's), 1 as bright as it lights them (5-50× the frame's: mostly white
+    #: after the tone curve)
+    outdoors_seen: float = 0.1
     #: the fallback light of a room without lamps or windows hangs this far below the top
     #: of its room's bounds, metres
     light_below_ceiling: float = 0.3
@@ -168,7 +174,7 @@ class RenderConfig:
     grain: float = 0.05
 
     def __post_init__(self):
-        for name in ("ambient", "lamp_power", "sky_luminance", "light_below_ceiling"):
+        for name in ("ambient", "lamp_power", "sky_luminance", "outdoors_seen", "light_below_ceiling"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not 0 <= self.grain <= 1:
@@ -1136,8 +1142,9 @@ class Renderer(ToneMapped):
             mesh_of_room[room]: np.asarray(e) / np.pi for room, e in room_ambient(house, config, lights).items()
             if room in mesh_of_room}
         if glazed:
-            # the outdoors: a dome of the sky's radiance (vertex colours × an ambient light of
-            # 1 and no light: exactly that radiance), lit by nothing else
+            # the outdoors as seen through the glass: a dome of the sky's radiance ×
+            # outdoors_seen (vertex colours × an ambient light of 1 and no light: exactly that
+            # radiance), lit by nothing else; the windows' lights carry its whole radiance
             centre = house.bounds().mean(axis=0)
             radius = min(max(4.0 * float(np.ptp(house.bounds(), axis=0).max()), 50.0), 0.5 * FAR)
             v, f, colours = sky_dome(centre, radius)
@@ -1145,8 +1152,8 @@ class Renderer(ToneMapped):
                 positions=(v[f] - centre).reshape(-1, 3).astype(np.float32),
                 normals=np.repeat(-np.asarray(v[f].mean(axis=1) - centre, np.float64)
                                   / radius, 3, axis=0).astype(np.float32),
-                color_0=np.concatenate([(colours[f] * float(config.sky_luminance)).reshape(-1, 3),
-                                        np.ones((3 * len(f), 1))], axis=1).astype(np.float32),
+                color_0=np.concatenate([(colours[f] * float(config.sky_luminance * config.outdoors_seen))
+                                        .reshape(-1, 3), np.ones((3 * len(f), 1))], axis=1).astype(np.float32),
                 material=pyrender.MetallicRoughnessMaterial(baseColorFactor=(1.0, 1.0, 1.0, 1.0), metallicFactor=0.0,
                                                             roughnessFactor=1.0, doubleSided=True))
             sky_node = scene.add(pyrender.Mesh(primitives=[dome]), name="sky", pose=_translation(centre))
