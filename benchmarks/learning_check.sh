@@ -21,10 +21,10 @@
 # RECIPE: the folder of config files (default benchmarks/learning/, the 2-core CPU recipe;
 #         benchmarks/learning/gpu/ is the one-GPU recipe, see its README.md).
 # RENDER_WORKERS: render's worker processes (default 2).
-# AMP: --amp of the three training stages (default: the recipe's config files, whose CPU recipe
-#      trains in bf16; with the CPU recipe on a CPU that does not compute bfloat16 itself, no
-#      avx512_bf16 or amx_bf16 among /proc/cpuinfo's flags, "off": PyTorch emulates bf16 there,
-#      several times slower than float32).
+# AMP: --amp of the three training stages: auto, bf16, fp16 or off (default: the recipe's
+#      config files, whose CPU recipe trains in bf16; with the CPU recipe on a CPU that does
+#      not compute bfloat16 itself, no avx512_bf16 or amx_bf16 among /proc/cpuinfo's flags,
+#      "off": PyTorch emulates bf16 there, several times slower than float32).
 set -euo pipefail
 
 if [ $# -ne 2 ]; then
@@ -41,7 +41,11 @@ sf=${SCENEFORGE:-$(command -v sceneforge || echo "$here/.venv/bin/sceneforge")}
 mkdir -p "$work"
 amp=()
 if [ -n "${AMP:-}" ]; then
-    amp=(--amp "$AMP")
+    # refused here, not at the first train after minutes of rendering (train --amp's choices)
+    case "$AMP" in
+        auto | bf16 | fp16 | off) amp=(--amp "$AMP") ;;
+        *) echo "error: AMP=$AMP is not one of auto, bf16, fp16, off (train --amp)" >&2; exit 2 ;;
+    esac
 elif [ -z "${RECIPE:-}" ] && ! grep -qwE 'avx512_bf16|amx_bf16' /proc/cpuinfo 2>/dev/null; then
     amp=(--amp off)
     echo "note: this CPU does not compute bfloat16 itself; training in float32 (--amp off)" >&2

@@ -224,10 +224,9 @@ def test_the_learning_checks_config_files_are_valid_configs_of_their_stage():
     assert {c.amp for c in cpu.values()} == {"bf16"} and cpu["depth"].loss.huber_delta == 0.1
 
 
-@pytest.mark.parametrize("amp", ["off", "bf16", None])
-def test_the_learning_check_passes_amp_to_every_training_stage(tmp_path, amp):
-    """AMP=… reaches the three ``train`` commands; unset, the CPU recipe's bf16 stays where
-    the CPU computes bfloat16 itself and becomes --amp off elsewhere."""
+def _learning_check(tmp_path, amp: str | None) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """benchmarks/learning_check.sh run with a fake ``sceneforge`` that logs its calls (and
+    ``AMP=amp`` when given): the finished process and the logged command lines."""
     script = Path(__file__).resolve().parents[1] / "benchmarks" / "learning_check.sh"
     log = tmp_path / "calls.txt"
     fake = tmp_path / "sf"
@@ -239,9 +238,22 @@ def test_the_learning_check_passes_amp_to_every_training_stage(tmp_path, amp):
     env.pop("AMP", None)
     if amp:
         env["AMP"] = amp
-    subprocess.run(["bash", str(script), str(tmp_path / "houses"), str(tmp_path / "work")], env=env, check=True,
-                   capture_output=True)
-    trains = [line for line in log.read_text().splitlines() if line.startswith("train ")]
+    done = subprocess.run(["bash", str(script), str(tmp_path / "houses"), str(tmp_path / "work")], env=env,
+                          capture_output=True, text=True)
+    return done, log.read_text().splitlines() if log.exists() else []
+
+
+@pytest.mark.parametrize("amp", ["auto", "bf16", "fp16", "off", None])
+def test_the_learning_check_passes_amp_to_every_training_stage(tmp_path, amp):
+    """AMP=… (each of train --amp's choices) reaches the three ``train`` commands; unset, the
+    CPU recipe's bf16 stays where the CPU computes bfloat16 itself and becomes --amp off
+    elsewhere."""
+    from sceneforge.learn.config import AMPS
+
+    assert amp is None or amp in AMPS
+    done, calls = _learning_check(tmp_path, amp)
+    assert done.returncode == 0, done.stderr
+    trains = [line for line in calls if line.startswith("train ")]
     assert len(trains) == 3
     try:
         native = {"avx512_bf16", "amx_bf16"} & set(Path("/proc/cpuinfo").read_text().split())
@@ -250,6 +262,16 @@ def test_the_learning_check_passes_amp_to_every_training_stage(tmp_path, amp):
     want = amp or (None if native else "off")
     for line in trains:
         assert (f"--amp {want}" in line) if want else ("--amp" not in line), line
+
+
+def test_the_learning_check_refuses_a_bad_amp_before_rendering(tmp_path):
+    """A mistyped AMP is refused with one line before anything runs, not by the first
+    ``train`` after the render; the script's list is train --amp's."""
+    from sceneforge.learn.config import AMPS
+
+    done, calls = _learning_check(tmp_path, "fp64")
+    assert done.returncode == 2 and calls == []
+    assert done.stderr.strip() == f"error: AMP=fp64 is not one of {', '.join(AMPS)} (train --amp)"
 
 
 def test_help_imports_no_torch():
