@@ -41,8 +41,11 @@ room: its surfaces receive ``ambient × Φ / A × ρ / (1 − ρ)`` lux besides 
 the surface of its bounds and ρ the mean albedo of the room's surfaces (area-weighted
 luminance of base colour × mean texel; :func:`room_albedo`): an integrating sphere of
 albedo ρ sends ρ / (1 − ρ) of the flux it receives back onto its walls after all bounces.
-The light has the colour of the room's lights, flux-weighted (the rooms' own tint left
-out: against PBRS's renders of a SUNCG house it made colours worse, not better).
+The light has the colour of the room's lights, flux-weighted. The rooms' own tint (ρ per
+channel) is left out: against PBRS's renders of a SUNCG house (cameras 0–3) it brings the
+walls and curtains within 0.05 of PBRS's chromaticity (7 of 7 regions, from 1) but takes
+two of the 13 object regions out (84.6 → 69.2 %: a wood table already too red, in two views); and it
+would change every store's RGB (docs/rgb.md, "Against PBRS").
 """
 
 from __future__ import annotations
