@@ -142,7 +142,7 @@ def test_seeds_do_not_depend_on_the_variant(fake, monkeypatch):
     monkeypatch.setattr(fake, "load_dict", lambda d: d, raising=False)
     monkeypatch.setattr(fake, "ScalarTransform4f", lambda m: m, raising=False)
     monkeypatch.setattr(fake, "render", render, raising=False)
-    monkeypatch.setattr(pathtrace.PathTracer, "_build_scene", lambda self, house: "scene")
+    monkeypatch.setattr(pathtrace.PathTracer, "_build_scene", lambda self, house: ("scene", None))
     house = box_room("room", size=4.0, height=3.0)
     cameras = [look_at_camera([0.1, 1.5, 0.2], [1.0, -0.2, 0.3], width=8, height=6),
                look_at_camera([0.3, 1.4, -0.2], [-0.5, 0.1, 1.0], width=8, height=6)]
