@@ -232,3 +232,36 @@ def test_the_hint_stands_when_a_few_files_have_a_floor_of_their_own(toy, tmp_pat
     for name in ("kitchen", "bedroom"):
         write_house(toy, houses / f"{name}.obj")
     assert "hint:" not in run("houses", "inspect", houses).output
+
+
+def test_a_file_added_to_a_scene_folder_is_a_change_and_update_takes_it_in(toy, tmp_path):
+    """A scene folder's house is the files its folder holds: one added (here a chair read by
+    the folder's names) or removed is named as a change, refused without --update, and
+    --update renders the house again with it, as a fresh render does."""
+    folder = tmp_path / "scenes" / "room"
+    files = write_object_files(toy, folder)
+    chair = next(f for f in files if f.stem == "Chair")
+    spare = tmp_path / "spare"
+    spare.mkdir()
+    for f in (chair, chair.with_suffix(".mtl")):
+        f.rename(spare / f.name)
+    out = tmp_path / "out.zarr"
+    assert run("render", tmp_path / "scenes", out, *RENDER).exit_code == 0
+    (record,) = open_store(str(out)).attrs["houses"]
+    assert str(folder) + "/" in record["inputs"] and changes([record], ["room"]).changed == ()
+    for f in spare.iterdir():
+        f.rename(folder / f.name)
+    assert changes([record], ["room"]).changed == ("room",)
+    refused = run("render", tmp_path / "scenes", out, *RENDER)
+    assert refused.exit_code != 0 and "changed: room" in refused.output, refused.output
+    done = run("render", tmp_path / "scenes", out, *RENDER, "--update")
+    assert done.exit_code == 0, done.output
+    fresh = tmp_path / "fresh.zarr"
+    assert run("render", tmp_path / "scenes", fresh, *RENDER).exit_code == 0
+    assert array_digests(str(out)) == array_digests(str(fresh))
+    (hidden := folder / ".notes").write_text("not a house file")
+    (record,) = open_store(str(out)).attrs["houses"]
+    assert changes([record], ["room"]).changed == ()  # hidden files are not the house's
+    hidden.unlink()
+    (folder / "Chair.obj").unlink()
+    assert changes([record], ["room"]).changed == ("room",)

@@ -4,7 +4,10 @@ Planning a house (step 1) records the SHA-256 of every file its loader opened fo
 (:func:`reads`: a Python audit hook sees each ``open``, so every format is covered without
 each listing its files: a glTF's buffers and textures, a SUNCG house's room and object
 meshes, a name map) into the house's plan record as ``inputs`` ``{path: SHA-256 or
-None}`` (None: the file was missing). A re-run compares them with the files as they are now
+None}`` (None: the file was missing). A house whose files are chosen by listing its folder
+(a scene folder: by names, by ``scene.json``'s patterns or with ``--format scene``) also
+records that folder's listing (:func:`listing_key`, :func:`listing`), so a file added to
+it or removed from it counts as a change. A re-run compares them with the files as they are now
 (:func:`changes`) and names every house that changed, was added, was removed, or failed and
 changed since.
 """
@@ -79,8 +82,30 @@ def _is_input(path: str, code: tuple[str, ...], data: str) -> bool:
     return not (path.startswith(code) or path.endswith(_CODE_SUFFIXES) or f"{os.sep}__pycache__{os.sep}" in path)
 
 
+def listing(folder: str | Path) -> list[str]:
+    """The files under ``folder`` (recursively, hidden files and folders left out) as sorted
+    POSIX paths relative to it."""
+    root = Path(folder)
+    out = []
+    for here, dirs, files in os.walk(root):
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        out += [(Path(here) / f).relative_to(root).as_posix() for f in files if not f.startswith(".")]
+    return sorted(out)
+
+
+def listing_key(folder: str | Path) -> str:
+    """The ``inputs`` key of a folder's listing: its absolute path and a trailing separator
+    (file keys never end in one)."""
+    return str(Path(folder).absolute()) + os.sep
+
+
 def file_digest(path: str) -> str | None:
-    """SHA-256 (hex) of the file at ``path``, None when there is none."""
+    """SHA-256 (hex) of the file at ``path``, or, for a :func:`listing_key`, of the folder's
+    :func:`listing`; None when there is none."""
+    if path.endswith(os.sep):
+        if not os.path.isdir(path):
+            return None
+        return hashlib.sha256("\n".join(listing(path)).encode()).hexdigest()
     h = hashlib.sha256()
     try:
         with open(path, "rb") as f:

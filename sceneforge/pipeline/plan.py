@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from ..errors import SceneforgeError, plural
-from .inputs import fingerprint, reads
+from .inputs import file_digest, fingerprint, listing_key, reads
 from .staging import house_key
 from .worker import WORKER
 
@@ -44,7 +44,11 @@ def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", recor
         try:
             return WORKER.load(source, config)
         finally:
-            record["inputs"] = fingerprint(paths)
+            inputs = fingerprint(paths)
+            if source.format == "scene":  # its files are what its folder holds (by names or patterns)
+                folder = Path(source.path) if Path(source.path).is_dir() else Path(source.path).parent
+                inputs[listing_key(folder)] = file_digest(listing_key(folder))
+            record["inputs"] = dict(sorted(inputs.items()))
 
 
 def check_camera_folder(cameras: str, house_ids: list[str]) -> None:
