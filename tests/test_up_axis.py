@@ -1,6 +1,7 @@
 """The up axis of generic scenes, told from the geometry (``--up-axis auto``, the default): a Z-up
 export of a known house loads as the Y-up one and renders the same layers; the reason shows in
-``houses inspect``; what cannot be told fails with a one-line hint; the real breakfast room."""
+``houses inspect``; what cannot be told fails with a one-line hint, and so does an upside-down
+export; the real breakfast room."""
 
 from __future__ import annotations
 
@@ -199,3 +200,47 @@ def test_the_breakfast_room_turned_z_up_is_told_z(breakfast_room, tmp_path, suff
     assert _note(back).startswith("up axis: z (detected: ")
     np.testing.assert_allclose(back.bounds(), breakfast_room.bounds(), atol=ATOL[suffix])
     assert len(back.rooms) == len(breakfast_room.rooms) == 1
+
+
+def _upside_down(house: House) -> House:
+    """``house`` turned upside down (180° about X: ``(x, y, z)`` → ``(x, -y, -z)``)."""
+    from dataclasses import replace
+
+    flip = np.diag([1.0, -1.0, -1.0])
+    return House(id=house.id, instances=[replace(i, vertices=i.vertices @ flip) for i in house.instances],
+                 rooms=list(house.rooms), levels=list(house.levels))
+
+
+@pytest.mark.parametrize("up", ["y", "z"])
+@pytest.mark.parametrize("named", [True, False])
+def test_an_upside_down_export_fails_with_a_one_line_reason(toy, tmp_path, up, named):
+    """-Y or -Z up: the named floors above the ceilings, the objects hanging from the top;
+    read as +Y or +Z its layers and cameras would be upside down, so the house fails in one
+    line that says why, and the override reads it as told."""
+    house = _upside_down(toy) if up == "y" else rotated_z_up(_upside_down(toy))
+    names = None if named else [f"Object_{k}" for k in range(len(house.instances))]
+    path = write_house(house, tmp_path / "toy.obj", names=names)
+    with pytest.raises(HouseError) as e:
+        load(path)
+    axis = up.upper()
+    floors = f"the meshes named as floors lie above those named as ceilings along +{axis}; " if named else ""
+    assert e.value.problem == (f"the scene is upside down (-{axis} up: {floors}20 objects hang at the top along "
+                               f"+{axis}, 4 stand at the bottom): export it +Y or +Z up (if it is not upside "
+                               f"down, pass --up-axis {up})")
+    res = run("houses", "inspect", path)
+    assert res.exit_code == EXIT_FAILURES and "Traceback" not in res.output
+    assert f"failed: house toy: {path}: {e.value.problem}" in res.output.splitlines()
+    assert load(path, LoadOptions(up_axis=up)).notes == []  # told, it is read as it is
+
+
+@pytest.mark.parametrize("kind", ["toy", "room"])
+def test_upright_houses_are_not_upside_down(tmp_path, kind):
+    """The check says nothing of upright scenes: 8 generated houses of each kind, named and
+    unnamed, +Y and +Z up, all load."""
+    for seed in range(8):
+        house = generate_house(seed, kind)
+        for named in (True, False):
+            names = None if named else [f"Object_{k}" for k in range(len(house.instances))]
+            for up, h in (("y", house), ("z", rotated_z_up(house))):
+                loaded = load(write_house(h, tmp_path / f"{seed}{named}{up}" / "h.obj", names=names))
+                assert _note(loaded).startswith(f"up axis: {up} (detected: ")

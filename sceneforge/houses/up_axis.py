@@ -24,6 +24,13 @@ votes both ways, is undecided (:attr:`UpAxis.axis` None). A glTF scene (``prefer
 up by its spec: it is read +Z up only when the names or gravity vote for Z and nothing for
 Y, else +Y. The decision depends on the geometry and names only (not on the order of
 equal-height objects, not on the units), so a scene always gets the same axis.
+
+Which way up is told apart too (:func:`upside_down`), since sceneforge reads only +Y and +Z
+up: a scene exported upside down (−Y or −Z up) has its named floors above its named
+ceilings (or, with only one of the two, in the top half of the scene, or the ceilings in
+the bottom half), and its objects hang from the top at one height (``gravity`` along −A
+at least ``gravity_ratio`` times as many as along +A, and ``min_objects``); it is upside
+down when some evidence says so and none says it is upright.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Part", "UpAxis", "detect_up_axis"]
+__all__ = ["Part", "UpAxis", "detect_up_axis", "upside_down"]
 
 _AXES = {"y": 1, "z": 2}
 
@@ -120,6 +127,54 @@ def detect_up_axis(
     return UpAxis(None, "; ".join(said[k] for k in ("names", "gravity", "area")))
 
 
+def upside_down(parts: Sequence[Part], axis: str, *, cluster: float = 0.002, bottom: float = 0.25,
+                min_objects: int = 3, gravity_ratio: float = 2.0) -> str | None:
+    """Why the scene of ``parts`` looks upside down along +``axis`` (``"y"`` or ``"z"``), in
+    words; None when nothing says so or something says it is upright (module doc)."""
+    k = _AXES[axis]
+    parts = [p for p in parts if len(p.faces)]
+    if not parts:
+        return None
+    flipped, upright = [], []
+    heights: dict[str, list[tuple[float, float]]] = {"floor": [], "ceiling": []}  # (area, mean height)
+    lows, highs = [], []
+    for p in parts:
+        v = np.asarray(p.vertices, dtype=np.float64).reshape(-1, 3)
+        used = v[np.unique(np.asarray(p.faces, dtype=np.int64))]
+        lows.append(used.min(0))
+        highs.append(used.max(0))
+        if p.kind in heights:
+            tri = v[np.asarray(p.faces, dtype=np.int64).reshape(-1, 3)]
+            area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            if area.sum() > 0:
+                heights[p.kind].append((float(area.sum()), float(area @ tri[:, :, k].mean(1) / area.sum())))
+    lows, highs = np.array(lows), np.array(highs)
+    lo, hi = float(lows[:, k].min()), float(highs[:, k].max())
+    middle = 0.5 * (lo + hi)
+    level = {kind: sum(a * h for a, h in hs) / sum(a for a, _ in hs) for kind, hs in heights.items() if hs}
+    if "floor" in level and "ceiling" in level:
+        (flipped if level["floor"] > level["ceiling"] else upright).append(
+            f"the meshes named as floors lie {'above' if level['floor'] > level['ceiling'] else 'below'} "
+            f"those named as ceilings along +{axis.upper()}")
+    elif level:
+        (kind, h), = level.items()
+        top = h > middle
+        ((flipped if top == (kind == "floor") else upright)
+         .append(f"the meshes named as {kind}s lie in the {'top' if top else 'bottom'} half along +{axis.upper()}"))
+    near = cluster * float((highs.max(0) - lows.min(0)).max())
+    extent = hi - lo
+    if len(parts) >= 2:
+        small = highs[:, k] - lows[:, k] <= 0.5 * extent
+        # standing along +A, and hanging: standing along -A (the highest points, negated)
+        up = _standing(lows[small, k], lo, extent, near, bottom)
+        down = _standing(-highs[small, k], -hi, extent, near, bottom)
+        if down >= min_objects and down >= gravity_ratio * up:
+            flipped.append(f"{down} objects hang at the top along +{axis.upper()}, {up} stand at the bottom")
+        elif up >= min_objects and up >= gravity_ratio * down:
+            upright.append(f"{up} objects stand at the bottom along +{axis.upper()}")
+    return "; ".join(flipped) if flipped and not upright else None
+
+
 def _ranked(values: dict) -> tuple[str, str]:
     """(the axis with the larger value, the other); Y on a tie, so the order is fixed."""
     return ("z", "y") if values["z"] > values["y"] else ("y", "z")
@@ -156,14 +211,7 @@ def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float,
     standing = {}
     for name, k in _AXES.items():
         small = highs[:, k] - lows[:, k] <= 0.5 * extent[k]
-        h = np.sort(lows[small, k])
-        if not len(h) or extent[k] <= 0:
-            standing[name] = 0
-            continue
-        # objects whose lowest points lie within `cluster` above each one's, the first in the bottom
-        count = np.searchsorted(h, h + cluster * size, side="right") - np.arange(len(h))
-        at_bottom = h <= lo[k] + bottom * extent[k]
-        standing[name] = int(count[at_bottom].max()) if at_bottom.any() else 0
+        standing[name] = _standing(lows[small, k], lo[k], extent[k], cluster * size, bottom)
     return _Evidence(
         named={a: float(named[k] / named_area) for a, k in _AXES.items()} if named_area > 0 else None,
         named_count=named_count,
@@ -172,6 +220,18 @@ def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float,
         flat=bool(min(extent[1], extent[2]) < flat * size) if size > 0 else True,
         objects=len(parts),
     )
+
+
+def _standing(lowest: np.ndarray, base: float, extent: float, near: float, bottom: float) -> int:
+    """How many objects stand at the bottom: the largest group of ``lowest`` points (one per
+    object) lying within ``near`` above the first of the group, that first in the lowest
+    ``bottom`` of ``extent`` above ``base``; 0 for none or a scene of no extent."""
+    h = np.sort(lowest)
+    if not len(h) or extent <= 0:
+        return 0
+    count = np.searchsorted(h, h + near, side="right") - np.arange(len(h))
+    at_bottom = h <= base + bottom * extent
+    return int(count[at_bottom].max()) if at_bottom.any() else 0
 
 
 def _other(axis: str) -> str:
