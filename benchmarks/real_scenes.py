@@ -6,7 +6,10 @@ houses, named as modelling tools name objects): a Z-up OBJ living room with a
 ``CeilingLampshade`` and four area lights outside its windows; a GLB desk room whose walls,
 floor and ceiling are one closed box named ``Wall``; the living room exported one OBJ per
 object (recognised by the files' names) and one whose files are numbered, the objects'
-names inside them (told by a ``scene.json``, as ``houses inspect`` suggests); a lone sofa (no up axis to tell); a relative ``--name-map``. Then runs
+names inside them (told by a ``scene.json``, as ``houses inspect`` suggests), then a
+``Stool.obj`` added to the per-object folder (render again: refused, naming the house;
+``--update`` takes it in); a lone sofa (no up axis to tell); the living room exported upside
+down (-Y up); a relative ``--name-map``. Then runs
 every case and prints one row each: the exit code, the lines printed (progress bars left
 out), whether a traceback appeared, and the line that matters; then whether every case gave
 what it should (a working store, or one line naming the fix).
@@ -103,6 +106,14 @@ def setup(root: Path) -> None:
                     names=[name])                                             # number, the object's name inside
     sofa = next(i for i in plain.instances if i.category_name == "sofa")
     write_house(House(id="sofa", instances=[replace(sofa, id=0)]), scenes / "lone_sofa.obj", names=["Sofa"])
+    # a stool in the middle of the studio's floor, for the case that adds it to the folder later
+    floor = next(i for i in plain.instances if i.category_name == "floor")
+    (x, y, z), stool = floor.vertices.mean(axis=0), House(id="stool", instances=[])
+    _box(stool, "Stool", (x - 0.2, y, z - 0.2), (x + 0.2, y + 0.45, z + 0.2))
+    write_house(rotated_z_up(stool), root / "spare" / "Stool.obj", names=["Stool"])
+    flip = np.diag([1.0, -1.0, -1.0])  # turned 180° about X: -Y up
+    write_house(House(id="living", instances=[replace(i, vertices=i.vertices @ flip) for i in living.instances]),
+                scenes / "upside_down.obj", names=names)
     (scenes / "living_map.json").write_text(json.dumps({"patterns": [["^Dresser", "cabinet"]]}))
     (root / "elsewhere").mkdir()
 
@@ -115,7 +126,8 @@ ROOMS = {"living.zarr": [3], "desk.zarr": [1], "parts.zarr": [2], "export.zarr":
 def cases(root: Path) -> list[tuple[str, list, Path, str]]:
     """(case, arguments, folder run from, what must hold: "ok" exit 0 (and a render's store
     with the houses and rooms of :data:`ROOMS`), "one line" a failure whose one message line
-    names the fix, "hint" the scene-folder hint, "usage" a suggested command)."""
+    names the fix, "hint" the scene-folder hint, "usage" a suggested command, "taken in" as
+    "ok" and the store's house read with the file added to its folder)."""
     r, e = root, root / "elsewhere"
     return [
         ("Z-up OBJ, no --up-axis: inspect", ["houses", "inspect", "scenes/living.obj"], r, "ok"),
@@ -124,7 +136,12 @@ def cases(root: Path) -> list[tuple[str, list, Path, str]]:
         ("one OBJ per object (Z-up), by names", ["render", "scenes/studio_parts", "parts.zarr", *SMALL], r, "ok"),
         ("one OBJ per object, file names say nothing", ["houses", "inspect", "scenes/export"], r, "hint"),
         ("... with the scene.json the hint names", ["render", "scenes/export", "export.zarr", *SMALL], r, "ok"),
+        ("a file added to the studio's folder", ["render", "scenes/studio_parts", "parts.zarr", *SMALL], r,
+         "one line"),
+        ("... render --update", ["render", "scenes/studio_parts", "parts.zarr", *SMALL, "--update"], r,
+         "taken in"),
         ("a lone sofa: no up axis to tell", ["houses", "inspect", "scenes/lone_sofa.obj"], r, "one line"),
+        ("an upside-down export (-Y up)", ["houses", "inspect", "scenes/upside_down.obj"], r, "one line"),
         ("relative --name-map: render", ["render", "scenes/living.obj", "named.zarr", *SMALL, "--name-map",
                                           "scenes/living_map.json"], r, "ok"),
         ("... evaluate from another folder", ["evaluate", "coverage", "../named.zarr", "--limit", "1",
@@ -170,6 +187,9 @@ def _run_cases(root: Path, path: Path | None, title: str) -> int:
     for name, args, cwd, want in cases(root):
         if name.startswith("... with the scene.json"):
             (root / "scenes" / "export" / "scene.json").write_text('{"files": ["*.obj"]}')
+        if name.startswith("a file added to the studio"):
+            for spare in (root / "spare").iterdir():  # Stool.obj and its material library
+                spare.rename(root / "scenes" / "studio_parts" / spare.name)
         t = time.perf_counter()
         code, lines = sceneforge(*args, cwd=cwd, path=path)
         traceback = any("Traceback" in line for line in lines)
@@ -180,6 +200,7 @@ def _run_cases(root: Path, path: Path | None, title: str) -> int:
             key = f"{key} (rooms: {rooms})"
         good = not traceback and {
             "ok": code == 0 and (store is None or rooms == ROOMS[store]),
+            "taken in": code == 0 and store is not None and rooms == ROOMS[store] and _read_stool(cwd / store),
             "hint": any(line.startswith("hint: ") for line in lines),
             "one line": code != 0 and sum(line.startswith(("error:", "failed:")) for line in lines) == 1
             and ("pass --" in key or "did you mean" in key),
@@ -194,6 +215,14 @@ def _run_cases(root: Path, path: Path | None, title: str) -> int:
     print(f"\n{len(rows)} cases: {len(rows) - bad} as they should be, {bad} not; "
           f"{sum(r[3] == 'yes' for r in rows)} tracebacks")
     return bad
+
+
+def _read_stool(store: Path) -> bool:
+    """Whether the store's houses were read with the ``Stool.obj`` added to their folder."""
+    from sceneforge.store import open_store
+
+    return any(path.endswith("Stool.obj") for h in open_store(str(store)).attrs["houses"]
+               for path in h.get("inputs") or {})
 
 
 def _rooms(store: Path) -> list[int] | None:
