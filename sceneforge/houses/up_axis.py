@@ -25,7 +25,7 @@ up by its spec: it is read +Z up only when the names or gravity vote for Z and n
 Y, else +Y. The decision depends on the geometry and names only (not on the order of
 equal-height objects, not on the units), so a scene always gets the same axis.
 
-Which way up is told apart too (:func:`upside_down`), since sceneforge reads only +Y and +Z
+Which way up is told apart too (:attr:`UpAxis.upside_down`), since sceneforge reads only +Y and +Z
 up: a scene exported upside down (−Y or −Z up) has its named floors above its named
 ceilings (or, with only one of the two, in the top half of the scene, or the ceilings in
 the bottom half), and its objects hang from the top at one height (``gravity`` along −A
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Part", "UpAxis", "detect_up_axis", "upside_down"]
+__all__ = ["Part", "UpAxis", "detect_up_axis"]
 
 _AXES = {"y": 1, "z": 2}
 
@@ -62,10 +62,12 @@ class Part:
 @dataclass(frozen=True)
 class UpAxis:
     """What :func:`detect_up_axis` decided: ``axis`` ``"y"``, ``"z"`` or None (it cannot
-    tell), and ``reason``, the evidence in words."""
+    tell), and ``reason``, the evidence in words; ``upside_down``, with an axis, why the
+    scene looks upside down along it, in words (module doc), else None."""
 
     axis: str | None
     reason: str
+    upside_down: str | None = None
 
 
 @dataclass(frozen=True)
@@ -75,9 +77,14 @@ class _Evidence:
     named: dict[str, float] | None  # share of the named floors' and ceilings' area facing each axis
     named_count: int
     standing: dict[str, int]  # objects standing at the bottom along +axis
+    hanging: dict[str, int]  # objects hanging at the top along +axis (standing along -axis)
     area: dict[str, float]  # share of all the area facing each axis
     flat: bool
     objects: int
+    #: (3,) area-weighted mean position of the faces of the meshes named ``floor`` and of
+    #: those named ``ceiling`` (a kind without any left out), and the scene's middle
+    levels: dict[str, np.ndarray]
+    middle: np.ndarray
 
 
 def detect_up_axis(
@@ -118,60 +125,36 @@ def detect_up_axis(
     chosen = set(votes.values())
     if prefer_y and chosen != {"y"} and not (chosen == {"z"} and ("names" in votes or "gravity" in votes)):
         return UpAxis("y", "glTF's convention, the evidence being unclear: " + "; ".join(
-            said[k] for k in ("names", "gravity", "area")))
+            said[k] for k in ("names", "gravity", "area")), _upside_down(ev, "y", min_objects, gravity_ratio))
     if len(chosen) == 1:
-        return UpAxis(chosen.pop(), "detected: " + "; ".join(said[k] for k in votes))
+        axis = chosen.pop()
+        return UpAxis(axis, "detected: " + "; ".join(said[k] for k in votes),
+                      _upside_down(ev, axis, min_objects, gravity_ratio))
     if chosen:
         both = "; ".join(f"{said[k]}: {a.upper()}" for k, a in votes.items())
         return UpAxis(None, f"the evidence disagrees: {both}")
     return UpAxis(None, "; ".join(said[k] for k in ("names", "gravity", "area")))
 
 
-def upside_down(parts: Sequence[Part], axis: str, *, cluster: float = 0.002, bottom: float = 0.25,
-                min_objects: int = 3, gravity_ratio: float = 2.0) -> str | None:
-    """Why the scene of ``parts`` looks upside down along +``axis`` (``"y"`` or ``"z"``), in
-    words; None when nothing says so or something says it is upright (module doc)."""
-    k = _AXES[axis]
-    parts = [p for p in parts if len(p.faces)]
-    if not parts:
-        return None
+def _upside_down(ev: _Evidence, axis: str, min_objects: int, gravity_ratio: float) -> str | None:
+    """Why the scene looks upside down along +``axis``, in words; None when nothing says so
+    or something says it is upright (module doc)."""
+    k, up, down = _AXES[axis], ev.standing[axis], ev.hanging[axis]
     flipped, upright = [], []
-    heights: dict[str, list[tuple[float, float]]] = {"floor": [], "ceiling": []}  # (area, mean height)
-    lows, highs = [], []
-    for p in parts:
-        v = np.asarray(p.vertices, dtype=np.float64).reshape(-1, 3)
-        used = v[np.unique(np.asarray(p.faces, dtype=np.int64))]
-        lows.append(used.min(0))
-        highs.append(used.max(0))
-        if p.kind in heights:
-            tri = v[np.asarray(p.faces, dtype=np.int64).reshape(-1, 3)]
-            area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-            if area.sum() > 0:
-                heights[p.kind].append((float(area.sum()), float(area @ tri[:, :, k].mean(1) / area.sum())))
-    lows, highs = np.array(lows), np.array(highs)
-    lo, hi = float(lows[:, k].min()), float(highs[:, k].max())
-    middle = 0.5 * (lo + hi)
-    level = {kind: sum(a * h for a, h in hs) / sum(a for a, _ in hs) for kind, hs in heights.items() if hs}
+    level = {kind: float(at[k]) for kind, at in ev.levels.items()}
     if "floor" in level and "ceiling" in level:
         (flipped if level["floor"] > level["ceiling"] else upright).append(
             f"the meshes named as floors lie {'above' if level['floor'] > level['ceiling'] else 'below'} "
             f"those named as ceilings along +{axis.upper()}")
     elif level:
         (kind, h), = level.items()
-        top = h > middle
+        top = h > float(ev.middle[k])
         ((flipped if top == (kind == "floor") else upright)
          .append(f"the meshes named as {kind}s lie in the {'top' if top else 'bottom'} half along +{axis.upper()}"))
-    near = cluster * float((highs.max(0) - lows.min(0)).max())
-    extent = hi - lo
-    if len(parts) >= 2:
-        small = highs[:, k] - lows[:, k] <= 0.5 * extent
-        # standing along +A, and hanging: standing along -A (the highest points, negated)
-        up = _standing(lows[small, k], lo, extent, near, bottom)
-        down = _standing(-highs[small, k], -hi, extent, near, bottom)
-        if down >= min_objects and down >= gravity_ratio * up:
-            flipped.append(f"{down} objects hang at the top along +{axis.upper()}, {up} stand at the bottom")
-        elif up >= min_objects and up >= gravity_ratio * down:
-            upright.append(f"{up} objects stand at the bottom along +{axis.upper()}")
+    if down >= min_objects and down >= gravity_ratio * up:
+        flipped.append(f"{down} objects hang at the top along +{axis.upper()}, {up} stand at the bottom")
+    elif up >= min_objects and up >= gravity_ratio * down:
+        upright.append(f"{up} objects stand at the bottom along +{axis.upper()}")
     return "; ".join(flipped) if flipped and not upright else None
 
 
@@ -183,8 +166,9 @@ def _ranked(values: dict) -> tuple[str, str]:
 def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float, flat: float) -> _Evidence:
     if not parts:
         zero = {"y": 0.0, "z": 0.0}
-        return _Evidence(None, 0, {"y": 0, "z": 0}, zero, True, 0)
+        return _Evidence(None, 0, {"y": 0, "z": 0}, {"y": 0, "z": 0}, zero, True, 0, {}, np.zeros(3))
     lows, highs, facing, areas, named, named_count = [], [], [], [], np.zeros(3), 0
+    at = {"floor": [np.zeros(3), 0.0], "ceiling": [np.zeros(3), 0.0]}  # Σ 2 × area × centre, Σ 2 × area
     for p in parts:
         v = np.asarray(p.vertices, dtype=np.float64).reshape(-1, 3)
         tri = v[np.asarray(p.faces, dtype=np.int64).reshape(-1, 3)]
@@ -198,6 +182,8 @@ def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float,
         if p.kind in ("floor", "ceiling"):
             named += per_axis
             named_count += 1
+            at[p.kind][0] += double_area @ tri.mean(axis=1)
+            at[p.kind][1] += float(double_area.sum())
         used = v[np.unique(p.faces)]
         lows.append(used.min(0))
         highs.append(used.max(0))
@@ -208,17 +194,22 @@ def _evidence(parts: list[Part], flat_cos: float, cluster: float, bottom: float,
     total = float(sum(areas)) or 1.0
     facing_total = np.sum(facing, axis=0) / total
     named_area = sum(a for a, p in zip(areas, parts, strict=True) if p.kind in ("floor", "ceiling"))
-    standing = {}
+    standing, hanging = {}, {}
     for name, k in _AXES.items():
         small = highs[:, k] - lows[:, k] <= 0.5 * extent[k]
         standing[name] = _standing(lows[small, k], lo[k], extent[k], cluster * size, bottom)
+        # hanging: standing along -axis (the highest points, negated)
+        hanging[name] = _standing(-highs[small, k], -hi[k], extent[k], cluster * size, bottom)
     return _Evidence(
         named={a: float(named[k] / named_area) for a, k in _AXES.items()} if named_area > 0 else None,
         named_count=named_count,
         standing=standing,
+        hanging=hanging,
         area={a: float(facing_total[k]) for a, k in _AXES.items()},
         flat=bool(min(extent[1], extent[2]) < flat * size) if size > 0 else True,
         objects=len(parts),
+        levels={kind: total / weight for kind, (total, weight) in at.items() if weight > 0},
+        middle=(lo + hi) / 2,
     )
 
 

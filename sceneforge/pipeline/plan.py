@@ -45,9 +45,9 @@ def _load_recording_inputs(source: "HouseSource", config: "DatasetConfig", recor
             return WORKER.load(source, config)
         finally:
             inputs = fingerprint(paths)
-            if source.format == "scene":  # its files are what its folder holds (by names or patterns)
-                folder = Path(source.path) if Path(source.path).is_dir() else Path(source.path).parent
-                inputs[listing_key(folder)] = file_digest(listing_key(folder))
+            if source.format == "scene":  # its files are what its folder (its path) holds
+                key = listing_key(source.path)
+                inputs[key] = file_digest(key)
             record["inputs"] = dict(sorted(inputs.items()))
 
 

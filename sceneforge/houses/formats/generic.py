@@ -50,7 +50,7 @@ from ..model import House, Instance, make_instance
 from ..names import DROP, SHELL, TAG, NameMap, Rule
 from ..rooms import derive_rooms
 from ..shell import pieces, split_shell
-from ..up_axis import Part, detect_up_axis, upside_down
+from ..up_axis import Part, detect_up_axis
 from .base import Format, HouseSource
 from .gltf import read_gltf
 from .meshio import Mesh, MeshFileError
@@ -226,10 +226,9 @@ class _Builder:
         for message in unsaid:
             self.warn(message)
         if up.axis is not None:
-            flipped = upside_down(parts, up.axis)
-            if flipped and self.house.instances:  # read so, its layers and cameras would be upside down
+            if up.upside_down and self.house.instances:  # read so, its layers and cameras would be upside down
                 raise HouseError(self.house.id, self.path,
-                                 f"the scene is upside down (-{up.axis.upper()} up: {flipped}): export it "
+                                 f"the scene is upside down (-{up.axis.upper()} up: {up.upside_down}): export it "
                                  f"+Y or +Z up (if it is not upside down, pass --up-axis {up.axis})")
             self.house.notes.insert(0, f"up axis: {up.axis} ({up.reason}); pass --up-axis to override")
         elif self.house.instances:  # an empty house fails as one (House.check_not_empty)
